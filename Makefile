@@ -1,0 +1,31 @@
+# Two commands do everything on a fresh machine (Python 3.11 with venv):
+#   make demo   create/refresh .venv, install everything, run the main job
+#   make test   create/refresh .venv, install everything, run the whole test suite
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test bench venv clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade "pip==25.3"
+	# torch first, from the CPU wheel (PyPI's default torch is a multi-GB CUDA build)
+	$(PY) -m pip install --quiet "torch==2.13.0"
+	$(PY) -m pip install --quiet -e ".[dev]"
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m jaxlimits.training.cli demo --out results/demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_bounds.py
+
+clean:
+	rm -rf $(VENV) results .pytest_cache .hypothesis

@@ -1,0 +1,59 @@
+"""Strict test configuration: XLA flags before JAX, rank promotion raises, x64 scoped per test."""
+
+from jaxlimits._xla_flags import set_cpu_xla_flags
+
+set_cpu_xla_flags()
+
+import contextlib  # noqa: E402
+import logging  # noqa: E402
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from hypothesis import HealthCheck, settings  # noqa: E402
+
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
+settings.register_profile(
+    "jaxlimits",
+    deadline=None,
+    max_examples=200,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+    derandomize=True,
+)
+settings.load_profile("jaxlimits")
+
+
+@pytest.fixture(params=[np.float32, np.float64], ids=["f32", "f64"])
+def dtype(request):
+    """Runs the test in float32 (JAX's default config) and in float64 (x64 enabled for the test)."""
+    with jax.enable_x64(request.param == np.float64):
+        yield request.param
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+@contextlib.contextmanager
+def count_compilations():
+    """Counts XLA compilations inside the block (JAX logs one line per compile when asked)."""
+    records = []
+
+    class Handler(logging.Handler):
+        def emit(self, record):
+            if "Compiling" in record.getMessage() or "Finished XLA compilation" in record.getMessage():
+                records.append(record.getMessage())
+
+    logger = logging.getLogger("jax._src.dispatch")
+    handler = Handler()
+    logger.addHandler(handler)
+    old = jax.config.jax_log_compiles
+    jax.config.update("jax_log_compiles", True)
+    try:
+        yield records
+    finally:
+        jax.config.update("jax_log_compiles", old)
+        logger.removeHandler(handler)
