@@ -72,15 +72,21 @@ def brake_peak_semi(v, a_max, h):
     return best
 
 
-def viable_reference(q, v, lim: Limits1, integrator, T=None, n=1, tol=0.0):
-    """Viability kernel membership by direct simulation of full braking (tolerance ``tol`` on q, v)."""
+def viable_reference(q, v, lim: Limits1, integrator, T=None, n=1, tol=0.0, curve_margin=0.0):
+    """Viability kernel membership by direct simulation of full braking (tolerance ``tol`` on q, v).
+
+    ``curve_margin`` > 0 asks a moving joint to stop at least that far inside the limit, to keep
+    sampled states off the exact boundary where rounding decides either way.
+    """
     if not (lim.q_min - tol <= q <= lim.q_max + tol and abs(v) <= lim.v_max + tol):
         return False
     if integrator == "zoh":
         up, down = max(v, 0) ** 2 / (2 * lim.a_max), max(-v, 0) ** 2 / (2 * lim.a_max)
     else:
         up, down = brake_peak_semi(v, lim.a_max, T / n), brake_peak_semi(-v, lim.a_max, T / n)
-    return q + up <= lim.q_max + tol and q - down >= lim.q_min - tol
+    up_margin = curve_margin if v > 0 else 0.0
+    down_margin = curve_margin if v < 0 else 0.0
+    return q + up <= lim.q_max + tol - up_margin and q - down >= lim.q_min - tol + down_margin
 
 
 # ---------------------------------------------------------------- the LP reference

@@ -63,8 +63,9 @@ class SemiImplicit:
         For ``v > 0, d >= 0`` the real-valued ``k -> (d - k h v) / (k (k+1))`` is unimodal with its
         minimum at ``k* = (d + sqrt(d^2 + h v d)) / (h v)``; the integers around ``k*`` (clipped to
         ``[1, n]``, four of them so that rounding in ``k*`` cannot miss the minimiser) are
-        evaluated exactly. For ``v <= 0`` (or a state already past the limit, best effort) the
-        minimum is at ``k = n``. ``k*`` only selects integers, so it carries no gradient.
+        evaluated exactly. Otherwise the minimum is at an end: ``k = n`` for ``v <= 0, d >= 0``
+        (decreasing), ``k = 1`` or ``k = n`` for a state already past the limit (``d < 0``, best
+        effort), so both ends are always candidates. ``k*`` only selects integers: no gradient.
         """
         n, h = self.n, self.h
         sd, sv = jax.lax.stop_gradient(d), jax.lax.stop_gradient(v)
@@ -74,7 +75,7 @@ class SemiImplicit:
         k_star = (sd_i + jnp.sqrt(sd_i * sd_i + h * sv_i * sd_i)) / (h * sv_i)
         k_star = jnp.where(interior, jnp.clip(k_star, 0.0, float(n)), float(n))
         best = None
-        for k in candidates(jnp.floor(k_star), (-1.0, 0.0, 1.0, 2.0), 1.0, float(n)):
+        for k in candidates(jnp.floor(k_star), (-1.0, 0.0, 1.0, 2.0), 1.0, float(n)) + [1.0, float(n)]:
             bv, ca = self._q_coeffs(k)
             g = (d - bv * v) / ca
             best = g if best is None else jnp.minimum(best, g)

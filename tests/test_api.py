@@ -1,0 +1,132 @@
+"""Public surface, dependency boundary, and eager errors on bad configuration."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlimits as jl
+from jaxlimits._xla_flags import merged_xla_flags
+
+ROOT = Path(__file__).resolve().parents[1]
+FORBIDDEN = {"mujoco", "brax", "gymnasium", "torch", "stable_baselines3", "flax", "matplotlib"}
+
+
+def test_every_public_name_resolves():
+    for name in jl.__all__:
+        assert getattr(jl, name) is not None, name
+
+
+def test_core_import_pulls_no_simulator_or_framework():
+    code = "import sys, jaxlimits; print(sorted({m.split('.')[0] for m in sys.modules}))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = set(ast.literal_eval(out.strip()))
+    assert not loaded & FORBIDDEN, loaded & FORBIDDEN
+
+
+def test_core_sources_import_only_jax_and_numpy():
+    for path in (ROOT / "jaxlimits").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            for name in names:
+                assert name.split(".")[0] not in FORBIDDEN, f"{path}: imports {name}"
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(q_min=1.0, q_max=1.0, v_max=1.0, a_max=1.0), r"q_min < q_max.*q_min=1\.0"),
+        (dict(q_min=[0.0, 2.0], q_max=[1.0, 1.0], v_max=1.0, a_max=1.0), r"joints \[1\]"),
+        (dict(q_min=-1.0, q_max=1.0, v_max=0.0, a_max=1.0), r"v_max must be > 0, got 0\.0"),
+        (dict(q_min=-1.0, q_max=1.0, v_max=1.0, a_max=-2.0), r"a_max must be > 0, got -2\.0"),
+        (dict(q_min=-1.0, q_max=1.0, v_max=1.0, a_max=1.0, j_max=0.0), r"j_max must be > 0"),
+        (dict(q_min=-1.0, q_max=float("nan"), v_max=1.0, a_max=1.0), r"q_max must be finite, got nan"),
+        (dict(q_min=-1.0, q_max=1.0, v_max=float("inf"), a_max=1.0), r"v_max must be finite"),
+        (dict(q_min=[-1.0, -1.0], q_max=[1.0, 1.0, 1.0], v_max=1.0, a_max=1.0), r"do not broadcast"),
+        (dict(q_min=np.zeros((2, 2)) - 1, q_max=1.0, v_max=1.0, a_max=1.0), r"q_min must be a scalar or a 1-D"),
+    ],
+)
+def test_joint_limits_reject_bad_configuration(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jl.JointLimits(**kwargs)
+
+
+def test_joint_limits_is_immutable_and_replace_validates():
+    lim = jl.JointLimits(-1.0, 1.0, 2.0, 3.0)
+    with pytest.raises(AttributeError):
+        lim.a_max = 5.0
+    assert float(lim.replace(a_max=5.0).a_max) == 5.0
+    with pytest.raises(ValueError, match="a_max"):
+        lim.replace(a_max=0.0)
+
+
+LIM = jl.JointLimits([-2.0, -1.0], [2.0, 1.0], [2.0, 1.5], [12.0, 10.0])
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(dt=0.0), r"dt must be a finite scalar > 0, got 0\.0"),
+        (dict(dt=float("nan")), r"dt must be"),
+        (dict(dt=np.array([0.01, 0.01])), r"dt must be a finite scalar"),
+        (dict(dt=0.01, integrator="semi_implicit", substeps=0), r"substeps must be an integer >= 1, got 0"),
+        (dict(dt=0.01, integrator="semi_implicit", substeps=2.5), r"substeps must be an integer"),
+        (dict(dt=0.01, substeps=5), r"substeps applies to integrator='semi_implicit'"),
+        (dict(dt=0.01, integrator="rk4"), r"integrator must be one of"),
+        (dict(dt=0.01, method="magic"), r"method must be one of"),
+        (dict(dt=0.5), r"condition \(11\).*use a_max <="),
+    ],
+)
+def test_acc_bounds_rejects_bad_configuration(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jl.acc_bounds(jnp.zeros(2), jnp.zeros(2), LIM, **kwargs)
+
+
+def test_acc_bounds_rejects_bad_shapes_and_types():
+    with pytest.raises(ValueError, match=r"does not end in the 2 joints"):
+        jl.acc_bounds(jnp.zeros(3), jnp.zeros(3), LIM, 0.01)
+    with pytest.raises(ValueError, match=r"do not broadcast"):
+        jl.acc_bounds(jnp.zeros((4, 2)), jnp.zeros((3, 2)), LIM, 0.01)
+    with pytest.raises(TypeError, match=r"JointLimits"):
+        jl.acc_bounds(jnp.zeros(2), jnp.zeros(2), (-1.0, 1.0, 1.0, 1.0), 0.01)
+    with pytest.raises(ValueError, match=r"needs dt"):
+        jl.is_viable(jnp.zeros(2), jnp.zeros(2), LIM, integrator="semi_implicit")
+
+
+def test_condition_11_needs_a_little_slack():
+    at_equality = jl.JointLimits(-0.05, 0.05, 1.0, 10.0)  # range == a_max dt^2, v_max == a_max dt
+    with pytest.raises(ValueError, match=r"condition \(11\)"):
+        jl.acc_bounds(0.0, 0.0, at_equality, 0.1)
+    jl.acc_bounds(0.0, 0.0, at_equality.replace(a_max=10.0 * (1 - 2e-4)), 0.1)
+
+
+def test_condition_11_is_checked_for_viability_only():
+    tight = jl.JointLimits(-0.01, 0.01, 1.0, 10.0)  # range 0.02 < a_max dt^2 = 0.1
+    with pytest.raises(ValueError, match=r"condition \(11\).*joints \[0\]"):
+        jl.acc_bounds(0.0, 0.0, tight, 0.1)
+    b = jl.acc_bounds(0.0, 0.0, tight, 0.1, method="naive")
+    assert float(b.lower) <= float(b.upper)
+
+
+def test_limits_may_be_traced_arguments():
+    q, v = jnp.array([1.9, -0.5]), jnp.array([0.5, -1.0])
+    eager = jl.acc_bounds(q, v, LIM, 0.01)
+    traced = jax.jit(lambda lim, q, v: jl.acc_bounds(q, v, lim, 0.01))(LIM, q, v)
+    np.testing.assert_array_equal(eager.upper, traced.upper)
+    np.testing.assert_array_equal(eager.lower, traced.lower)
+
+
+def test_xla_flags_are_appended_without_clobbering():
+    assert merged_xla_flags("") == "--xla_cpu_use_fusion_emitters=false"
+    kept = merged_xla_flags("--xla_force_host_platform_device_count=2")
+    assert kept.split() == ["--xla_force_host_platform_device_count=2", "--xla_cpu_use_fusion_emitters=false"]
+    assert merged_xla_flags("--xla_cpu_use_fusion_emitters=true") == "--xla_cpu_use_fusion_emitters=true"
