@@ -183,3 +183,39 @@ def _zoh_cuts(a, q0, v0, lim, T, tol):
         cq, gq = cq + T * cv, gq + T * gv + 0.5 * T * T * e
         gv = gv + T * e
     return cuts
+
+
+def certified_safe(q, v, a0, lim: Limits1, T, integrator="zoh", n=1, tol=1e-12, max_steps=2000):
+    """A constructive proof that holding ``a0`` now is safe: an explicit plan that never breaks a limit.
+
+    After ``a0``, each step either stops the joint exactly (``a = -v / T``) when that step keeps
+    every limit, or brakes fully (``a = -a_max sign(v)``), which may carry it past zero velocity
+    and back (the plan that minimises the peak); once at rest, ``a = 0`` keeps it there forever.
+    Sufficient, not necessary: it adjudicates the rare states where the LP solver, on a degenerate
+    boundary (a single surviving plan), reports a bound tighter than the closed form.
+    """
+
+    def step(q, v, a):
+        if integrator == "zoh":
+            q1, v1, lo, hi = zoh_step(q, v, a, T)
+        else:
+            q1, v1, lo, hi = semi_implicit_step(q, v, a, T, n)
+            q1, v1, lo, hi = float(q1), float(v1), float(lo), float(hi)
+        ok = abs(a) <= lim.a_max + tol and lo >= lim.q_min - tol and hi <= lim.q_max + tol and abs(v1) <= lim.v_max + tol
+        return ok, float(q1), float(v1)
+
+    ok, q, v = step(q, v, a0)
+    if not ok:
+        return False
+    for _ in range(max_steps):
+        if v == 0.0:
+            return True
+        a_stop = -v / T
+        if abs(a_stop) <= lim.a_max:
+            ok, q1, v1 = step(q, v, a_stop)
+            if ok:
+                return True
+        ok, q, v = step(q, v, -math.copysign(lim.a_max, v))
+        if not ok:
+            return False
+    return False

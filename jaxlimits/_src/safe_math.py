@@ -16,5 +16,11 @@ def tiny_floor(dtype) -> float:
 
 
 def candidates(center, offsets, lo, hi):
-    """Integers ``clip(center + o, lo, hi)`` for each offset, as a list of arrays (floats)."""
-    return [jnp.clip(center + o, lo, hi) for o in offsets]
+    """Integers ``clip(center + o, lo, hi)`` for each offset, stacked on a new last axis ``(..., k)``.
+
+    ``center`` is a float array of integer values; the result is reduced with ``min``/``max`` over
+    the last axis by the caller, so every formula is written (and differentiated) once.
+    """
+    center = jnp.asarray(center)
+    offsets = jnp.asarray(offsets, center.dtype).reshape((1,) * center.ndim + (-1,))
+    return jnp.clip(center[..., None] + offsets, lo, hi)

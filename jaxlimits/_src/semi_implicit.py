@@ -74,12 +74,10 @@ class SemiImplicit:
         sv_i = jnp.where(interior, sv, 1.0)
         k_star = (sd_i + jnp.sqrt(sd_i * sd_i + h * sv_i * sd_i)) / (h * sv_i)
         k_star = jnp.where(interior, jnp.clip(k_star, 0.0, float(n)), float(n))
-        best = None
-        for k in candidates(jnp.floor(k_star), (-1.0, 0.0, 1.0, 2.0), 1.0, float(n)) + [1.0, float(n)]:
-            bv, ca = self._q_coeffs(k)
-            g = (d - bv * v) / ca
-            best = g if best is None else jnp.minimum(best, g)
-        return best
+        # the four integers around k*, and both ends (the minimiser for v <= 0 or d < 0)
+        k = candidates(jnp.floor(k_star), (-1.0, 0.0, 1.0, 2.0, -n, n), 1.0, float(n))
+        bv, ca = self._q_coeffs(k)
+        return jnp.min((d[..., None] - bv * v[..., None]) / ca, axis=-1)
 
     def viability_upper(self, d, v, a_max):
         """Largest ``a`` whose next state is upper-viable: ``q_n + D(v_n) <= q_max``.
@@ -96,19 +94,14 @@ class SemiImplicit:
         R = d - h * (n - 1) * v / 2.0
         rho = jnp.maximum(2.0 * jax.lax.stop_gradient(R) / (a_max * h * h), 0.0)
         k_hat = jnp.floor((-n + jnp.sqrt(float(n * n) + 4.0 * rho)) / 2.0)
-        best = None
-        for K in candidates(k_hat, (-1.0, 0.0, 1.0), 0.0, jnp.inf):
-            x = (2.0 * R / h + a_max * h * K * (K + 1.0)) / (n + 1.0 + 2.0 * K)
-            best = x if best is None else jnp.minimum(best, x)
-        return (best - v) / self.dt
+        K = candidates(k_hat, (-1.0, 0.0, 1.0), 0.0, jnp.inf)
+        x = (2.0 * R[..., None] / h + a_max[..., None] * h * K * (K + 1.0)) / (n + 1.0 + 2.0 * K)
+        return (jnp.min(x, axis=-1) - v) / self.dt
 
     def braking_distance(self, v, a_max):
         """``D(v)``: distance travelled toward the upper limit under full braking (see module doc)."""
         h = self.h
         vp = jnp.maximum(v, 0.0)
-        k_hat = jnp.floor(jax.lax.stop_gradient(vp) / (a_max * h))
-        best = None
-        for K in candidates(k_hat, (-1.0, 0.0, 1.0), 0.0, jnp.inf):
-            dist = h * (K * vp - a_max * h * K * (K + 1.0) / 2.0)
-            best = dist if best is None else jnp.maximum(best, dist)
-        return best
+        K = candidates(jnp.floor(jax.lax.stop_gradient(vp) / (a_max * h)), (-1.0, 0.0, 1.0), 0.0, jnp.inf)
+        dist = h * (K * vp[..., None] - a_max[..., None] * h * K * (K + 1.0) / 2.0)
+        return jnp.max(dist, axis=-1)
