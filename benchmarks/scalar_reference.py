@@ -137,9 +137,9 @@ def _semi_position_upper(d, v, h, n):
     else:
         k_star = float(n)
     center = math.floor(k_star)
+    ks = [min(max(center + off, 1.0), float(n)) for off in (-1.0, 0.0, 1.0, 2.0)] + [1.0, float(n)]
     best = math.inf
-    for off in (-1.0, 0.0, 1.0, 2.0):
-        k = min(max(center + off, 1.0), float(n))
+    for k in ks:  # the integers around k*, and both ends (a state past the limit, best effort)
         g = (d - k * h * v) / (h * h * k * (k + 1.0) / 2.0)
         if g < best:
             best = g
