@@ -22,7 +22,8 @@ from jaxlimits._src.limits import JointLimits
 from jaxlimits._src.semi_implicit import SemiImplicit
 from jaxlimits._src.zoh import ZeroOrderHold
 
-METHODS = ("naive", "viability")
+METHODS = ("naive", "viability", "jerk", "jerk_paper")
+JERK_METHODS = ("jerk", "jerk_paper")
 INTEGRATORS = ("zoh", "semi_implicit")
 CONDITION_11_SLACK = 1e-4
 
@@ -170,6 +171,7 @@ def acc_bounds(
     integrator: str = "zoh",
     substeps: int = 1,
     rounding_guard: bool = True,
+    a_prev=None,
 ) -> Bounds:
     """Bounds on the joint accelerations of the next control step.
 
@@ -190,6 +192,10 @@ def acc_bounds(
       rounding_guard: tighten the limits by ``2 + substeps`` ulps of their magnitude so that the
         rounding of the next-state update cannot carry a state riding a bound outside (needed in
         float32; see ``_rounding_guard``). ``False`` gives the exact real-arithmetic bound.
+      a_prev: the previous step's joint accelerations [rad/s^2], broadcast with ``q``; required by
+        (and only allowed for) ``method="jerk"`` — the exact jerk-aware bounds for the state
+        ``(q, v, a_prev)`` with ``|a - a_prev| <= j_max dt`` (``jerk.py``, needs ``limits.j_max``)
+        — and ``method="jerk_paper"`` — Meguenani et al.'s eqs. (39)-(40) (``jerk_paper.py``).
 
     Returns:
       ``Bounds(lower, upper, viable)``, each ``(..., n)``; ``-a_max <= lower <= upper <= a_max``.
@@ -203,6 +209,19 @@ def acc_bounds(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method in JERK_METHODS:
+        _check_limits_type(limits)
+        if a_prev is None:
+            raise ValueError(f"method={method!r} needs a_prev (the previous joint accelerations)")
+        if limits.j_max is None:
+            raise ValueError(f"method={method!r} needs a jerk limit: JointLimits(..., j_max=...) got j_max=None")
+        if method == "jerk":
+            from jaxlimits._src.jerk import jerk_acc_bounds as impl
+        else:
+            from jaxlimits._src.jerk_paper import paper_acc_bounds as impl
+        return impl(q, v, a_prev, limits, dt, integrator, substeps, rounding_guard)
+    if a_prev is not None:
+        raise ValueError(f"a_prev is only used by the jerk methods {JERK_METHODS}, not method={method!r}")
     model = make_model(dt, integrator, substeps)
     _check_limits_type(limits)
     if method == "viability":

@@ -1,0 +1,169 @@
+"""Timing of the box-QP projection: clip vs dense metric vs halfspaces, against jaxopt in the same run.
+
+    .venv/bin/python benchmarks/bench_qp.py            # batches 1, 64, 4096, 65536
+    .venv/bin/python benchmarks/bench_qp.py --quick    # batch 4096 only, fewer repeats (< 30 s)
+
+Problems: n = 7 joints, random SPD metrics (condition number 1e2), x_des ~ 2 N(0, 1), box [-1, 1],
+one random halfspace for the halfspace rows. float32 (JAX's default, what RL runs in). Every
+function is jitted; times are the median of repeated calls after compilation (block_until_ready).
+"fwd+bwd" is ``jax.grad`` of ``sum(x * v)`` w.r.t. ``x_des`` (our custom JVP; jaxopt's implicit
+differentiation). Accuracy: the largest error of the float32 result vs our float64 solution (itself
+checked against an exact enumeration reference in ``tests/test_qp.py``); BoxCDQP / BoxOSQP run at
+tolerances chosen to reach about that accuracy, and their error is printed next to their time.
+qpax is not measured (not installed in this environment). Prints a table, then one ``JSON {...}``
+line with every figure and the ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from jaxlimits._xla_flags import set_cpu_xla_flags  # noqa: E402
+
+set_cpu_xla_flags()
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxlimits as jl  # noqa: E402
+
+N = 7
+
+
+def problems(batch, seed=0):
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.normal(size=(batch, N, N)))
+    eig = np.exp(rng.uniform(0, np.log(1e2), size=(batch, N)))
+    W = np.einsum("bij,bj,bkj->bik", Q, eig, Q)
+    W = 0.5 * (W + np.swapaxes(W, -1, -2))
+    xd = 2.0 * rng.normal(size=(batch, N))
+    G = rng.normal(size=(batch, 1, N))
+    h = rng.uniform(0.0, 1.0, size=(batch, 1))
+    return xd, -np.ones(N), np.ones(N), W, G, h
+
+
+def timeit(fn, *args, reps):
+    out = fn(*args)
+    jax.block_until_ready(out)
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    return float(np.median(times)), out
+
+
+def methods(lo, hi):
+    import jaxopt
+
+    def ours_clip(xd, W, G, h):
+        return jl.project_box(xd, lo, hi)
+
+    def ours_dense(xd, W, G, h):
+        return jl.project_box(xd, lo, hi, W)
+
+    def ours_half(xd, W, G, h):
+        return jl.project_box(xd, lo, hi, W, G=G, h=h)
+
+    cd = jaxopt.BoxCDQP(tol=1e-6, maxiter=500, implicit_diff=True)
+
+    def boxcdqp(xd, W, G, h):
+        def one(x, w):
+            return cd.run(jnp.clip(x, lo, hi), params_obj=(w, -w @ x), params_ineq=(lo, hi)).params
+        return jax.vmap(one)(xd, W)
+
+    osqp = jaxopt.BoxOSQP(tol=1e-6, maxiter=4000, implicit_diff=True)
+
+    def boxosqp(xd, W, G, h):
+        def one(x, w):
+            A = jnp.eye(N, dtype=x.dtype)
+            return osqp.run(params_obj=(w, -w @ x), params_eq=A, params_ineq=(lo, hi)).params.primal[0]
+        return jax.vmap(one)(xd, W)
+
+    def boxosqp_half(xd, W, G, h):
+        def one(x, w, g, hh):
+            A = jnp.concatenate([jnp.eye(N, dtype=x.dtype), g], axis=0)
+            l = jnp.concatenate([lo, jnp.full((1,), -1e20, x.dtype)])
+            u = jnp.concatenate([hi, hh])
+            return osqp.run(params_obj=(w, -w @ x), params_eq=A, params_ineq=(l, u)).params.primal[0]
+        return jax.vmap(one)(xd, W, G, h)
+
+    return {
+        "clip": ours_clip,
+        "dense": ours_dense,
+        "halfspace": ours_half,
+        "BoxCDQP": boxcdqp,
+        "BoxOSQP": boxosqp,
+        "BoxOSQP_halfspace": boxosqp_half,
+    }
+
+
+REFERENCE_OF = {"clip": "clip", "dense": "dense", "halfspace": "halfspace", "BoxCDQP": "dense",
+                "BoxOSQP": "dense", "BoxOSQP_halfspace": "halfspace"}
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    batches = [4096] if args.quick else [1, 64, 4096, 65536]
+    names = ["clip", "dense", "halfspace", "BoxCDQP"] if args.quick else list(REFERENCE_OF)
+    lo, hi = -jnp.ones(N, jnp.float32), jnp.ones(N, jnp.float32)
+    fns = methods(lo, hi)
+    rows, results = [], {}
+    for batch in batches:
+        xd, _, _, W, G, h = problems(batch)
+        with jax.enable_x64(True):  # the float64 answers the accuracy is measured against
+            exact = {
+                "clip": np.asarray(jl.project_box(xd, -1.0, 1.0)),
+                "dense": np.asarray(jl.project_box(xd, -1.0, 1.0, W)),
+                "halfspace": np.asarray(jl.project_box(xd, -1.0, 1.0, W, G=G, h=h)),
+            }
+        a32 = [jnp.asarray(a, jnp.float32) for a in (xd, W, G, h)]
+        v = jnp.asarray(np.random.default_rng(1).normal(size=xd.shape), jnp.float32)
+        for name in names:
+            if batch >= 4096 and name.startswith("BoxOSQP"):
+                continue  # ~1 s per 64 problems on a CPU: ~1 min per call at 4096 (skipped)
+            reps = 3 if (args.quick or batch >= 4096) else 20
+            if name.startswith("Box") and batch >= 4096:
+                reps = 2
+            fwd = jax.jit(fns[name])
+            t_f, x = timeit(fwd, *a32, reps=reps)
+            err = float(np.max(np.abs(np.asarray(x, np.float64) - exact[REFERENCE_OF[name]])))
+            bwd = jax.jit(jax.grad(lambda xd_, *rest, f=fns[name]: jnp.sum(f(xd_, *rest) * v)))
+            t_b, _ = timeit(bwd, *a32, reps=reps) if not (args.quick and name.startswith("Box")) else (float("nan"), None)
+            results[f"{name}@{batch}"] = {"fwd_s": t_f, "fwd_bwd_s": t_b, "max_err": err}
+            rows.append((batch, name, t_f, t_b, err))
+            print(f"{batch:>6} {name:<18} fwd {t_f * 1e3:10.3f} ms   fwd+bwd {t_b * 1e3:10.3f} ms   max err {err:.2e}", flush=True)
+
+    ratios = {}
+    for batch in batches:
+        r = lambda a, b, k: results[f"{a}@{batch}"][k] / results[f"{b}@{batch}"][k]  # noqa: E731
+        ratios[f"dense_over_clip_fwd@{batch}"] = r("dense", "clip", "fwd_s")
+        ratios[f"dense_over_clip_fwd_bwd@{batch}"] = r("dense", "clip", "fwd_bwd_s")
+        ratios[f"halfspace_over_clip_fwd@{batch}"] = r("halfspace", "clip", "fwd_s")
+        ratios[f"BoxCDQP_over_dense_fwd@{batch}"] = r("BoxCDQP", "dense", "fwd_s")
+        ratios[f"BoxCDQP_over_dense_fwd_bwd@{batch}"] = r("BoxCDQP", "dense", "fwd_bwd_s")
+        if f"BoxOSQP@{batch}" in results:
+            ratios[f"BoxOSQP_over_dense_fwd@{batch}"] = r("BoxOSQP", "dense", "fwd_s")
+            ratios[f"BoxOSQP_halfspace_over_halfspace_fwd@{batch}"] = r("BoxOSQP_halfspace", "halfspace", "fwd_s")
+
+    print()
+    print(f"{'batch':>6} {'method':<18} {'fwd [ms]':>12} {'fwd+bwd [ms]':>14} {'max err':>10}")
+    for batch, name, t_f, t_b, err in rows:
+        print(f"{batch:>6} {name:<18} {t_f * 1e3:12.3f} {t_b * 1e3:14.3f} {err:10.2e}")
+    for k, val in ratios.items():
+        print(f"{k:<45} {val:10.2f}")
+    summary = {"n": N, "dtype": "float32", "device": jax.devices()[0].platform, "quick": args.quick,
+               "results": results, "ratios": ratios}
+    print("JSON " + json.dumps(summary, allow_nan=True))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""Independent references for the jerk-aware bounds: a long-horizon LP and plain-NumPy rollouts.
+
+Nothing here imports jaxlimits' formulas. The LP is ``reference.lp_bounds`` with the previous
+acceleration in the state and the jerk rows ``|a_0 - a_prev| <= j_max T``,
+``|a_i - a_{i-1}| <= j_max T``; the horizon ends at rest (``v = 0`` *and* ``a = 0``), from where
+``a = 0`` keeps the joint still forever without breaking the jerk limit, so a feasible plan is a
+viable one and the optimum of ``a_0`` is the exact bound. Zero-order-hold positions inside a step
+are bracketed: a relaxation (positions at sample points) and a restriction (the same points kept
+``a_max s^2 / 8`` inside, s the sample spacing) bound the exact answer from both sides. (The
+cutting planes of ``reference.py`` stall here: with jerk rows the LP's free tail wanders along a
+limit and every round finds new ~1e-9 violations.)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.optimize import linprog
+
+from reference import _HIGHS, _affine_rollout
+
+
+@dataclass(frozen=True)
+class JLimits1:
+    q_min: float
+    q_max: float
+    v_max: float
+    a_max: float
+    j_max: float
+
+
+def default_horizon(lim: JLimits1, T: float) -> int:
+    """Steps enough to stop from any viable state and recover: stop, ramps and a margin."""
+    t = lim.v_max / lim.a_max + 4.0 * lim.a_max / lim.j_max
+    return int(math.ceil(t / T)) + 12
+
+
+def _lp_first(q0, v0, a_prev, lim: JLimits1, T, integrator, n, H, samples, margin):
+    """(lower, upper) of a_0 with positions kept ``margin`` inside the limits at the sample points."""
+    pos_rows, vel_rows = _affine_rollout(q0, v0, T, H, integrator, n, samples)
+    A_ub, b_ub = [], []
+    for c, g in pos_rows:
+        A_ub += [g, -g]
+        b_ub += [lim.q_max - margin - c, c - lim.q_min - margin]
+    for c, g in vel_rows:
+        A_ub += [g, -g]
+        b_ub += [lim.v_max - c, lim.v_max + c]
+    dj = lim.j_max * T
+    for i in range(H):
+        g = np.zeros(H)
+        g[i] = 1.0
+        if i == 0:
+            A_ub += [g, -g]
+            b_ub += [dj + a_prev, dj - a_prev]
+        else:
+            g[i - 1] = -1.0
+            A_ub += [g, -g]
+            b_ub += [dj, dj]
+    c_end, g_end = vel_rows[-1]
+    last = np.zeros(H)
+    last[-1] = 1.0
+    A_ub, b_ub = sparse.csr_matrix(np.array(A_ub)), np.array(b_ub)
+    A_eq, b_eq = np.array([g_end, last]), np.array([-c_end, 0.0])
+    out = []
+    for sign in (1.0, -1.0):
+        cost = np.zeros(H)
+        cost[0] = sign
+        res = linprog(cost, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=[(-lim.a_max, lim.a_max)] * H,
+                      method="highs", options=_HIGHS)
+        if res.status == 2:
+            return None
+        assert res.status == 0, res.message
+        out.append(res.x[0])
+    return out[0], out[1]
+
+
+def lp_jerk_bounds(q0, v0, a_prev, lim: JLimits1, T, integrator="zoh", n=1, horizon=None, samples=8):
+    """Exact bounds of the first acceleration by LP, bracketed: ``(outer, inner)`` or None.
+
+    ``outer = (lower, upper)`` constrains positions only at ``samples`` points per step (zoh) — a
+    relaxation, so its interval contains the exact one; ``inner`` keeps those samples
+    ``a_max (T / samples)^2 / 8`` inside the limits, which bounds how far a parabola with
+    ``|a| <= a_max`` can rise between samples — a restriction, so its interval is inside the exact
+    one (None if that restriction is infeasible). For the semi-implicit model every substep is a
+    row and both are the exact answer. Returns None when the relaxation is infeasible: not viable.
+    """
+    if not (lim.q_min <= q0 <= lim.q_max and abs(v0) <= lim.v_max and abs(a_prev) <= lim.a_max):
+        return None
+    H = horizon or default_horizon(lim, T)
+    outer = _lp_first(q0, v0, a_prev, lim, T, integrator, n, H, samples, 0.0)
+    if outer is None or integrator != "zoh":
+        return None if outer is None else (outer, outer)
+    margin = lim.a_max * (T / samples) ** 2 / 8.0
+    inner = _lp_first(q0, v0, a_prev, lim, T, integrator, n, H, samples, margin)
+    return outer, inner
+
+
+def sample_states(lim: JLimits1, count, rng):
+    """States concentrated near the limits: position near a limit, moving toward it, any a_prev."""
+    span = lim.q_max - lim.q_min
+    out = []
+    for _ in range(count):
+        mode = rng.integers(4)
+        u, w, z = rng.uniform(size=3)
+        if mode == 0:  # at or very near the limit, slow
+            d = span * u**6
+            v = lim.v_max * (2 * w - 1) * 0.3
+        elif mode == 1:  # near the limit, near the braking curve
+            d = span * u**3
+            v = math.sqrt(2 * lim.a_max * d) * (0.6 + 0.5 * w)
+        elif mode == 2:  # anywhere
+            d = span * u
+            v = lim.v_max * (2 * w - 1)
+        else:  # fast, near the velocity limit
+            d = span * u**2
+            v = lim.v_max * (1 - 0.2 * w**2)
+        v = float(np.clip(v, -lim.v_max, lim.v_max))
+        a = lim.a_max * (2 * z - 1)
+        if rng.uniform() < 0.5:
+            out.append((lim.q_max - d, v, a))
+        else:
+            out.append((lim.q_min + d, -v, -a))
+    return out
+
+
+# ----------------------------------------------------------------------------- numpy rollouts
+
+
+def simulate_step(q, v, a, T, integrator, n, dtype=np.float64):
+    """(q1, v1, q_lo, q_hi) with the reference simulators of ``reference.py``."""
+    from reference import semi_implicit_step, zoh_step, zoh_step_dtype
+
+    if integrator == "zoh":
+        return zoh_step_dtype(q, v, a, T, dtype) if dtype != np.float64 else zoh_step(q, v, a, T)
+    return semi_implicit_step(q, v, a, T, n, dtype)

@@ -1,0 +1,287 @@
+"""The box-QP projection against an exact enumeration reference, its derivatives, batching and errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import jaxlimits as jl
+import qp_reference as ref
+
+
+def _spd(rng, batch, n, cond):
+    """Random SPD matrices with condition number ``cond`` (random eigenbasis, log-spaced spectrum)."""
+    Q, _ = np.linalg.qr(rng.normal(size=(batch, n, n)))
+    eig = np.exp(rng.uniform(0, np.log(cond), size=(batch, n)))
+    eig[:, 0], eig[:, -1] = 1.0, cond
+    W = np.einsum("bij,bj,bkj->bik", Q, eig, Q)
+    return 0.5 * (W + np.swapaxes(W, -1, -2)) * np.exp(rng.uniform(-3, 3, size=(batch, 1, 1)))
+
+
+def _problems(rng, batch, n, cond, kind="random"):
+    lo = rng.uniform(-2.0, 0.0, size=(batch, n))
+    hi = lo + rng.uniform(0.1, 2.0, size=(batch, n))
+    W = _spd(rng, batch, n, cond)
+    xd = rng.uniform(-4.0, 4.0, size=(batch, n))
+    if kind == "none_active":  # x_des inside: the answer is x_des
+        xd = lo + rng.uniform(0.05, 0.95, size=(batch, n)) * (hi - lo)
+    elif kind == "all_active":  # far outside along a diagonal metric's axes: every bound holds
+        W = np.einsum("bi,ij->bij", rng.uniform(0.5, 2.0, size=(batch, n)), np.eye(n))
+        xd = np.where(rng.uniform(size=(batch, n)) < 0.5, lo - 3.0, hi + 3.0)
+    elif kind == "ties":  # x_des exactly on bounds, degenerate boxes lower == upper
+        on = rng.integers(0, 3, size=(batch, n))
+        xd = np.where(on == 1, lo, np.where(on == 2, hi, xd))
+        flat = rng.uniform(size=(batch, n)) < 0.15
+        hi = np.where(flat, lo, hi)
+    return xd, lo, hi, W
+
+
+def _max_error(res, xd, lo, hi, W, G=None, h=None):
+    """Largest error relative to ``1 + |x_ref|`` over the batch (problems the reference cannot solve,
+    degenerate ones where no active-set system is regular, are skipped; at most 1 % of them)."""
+    errs, skipped = [], 0
+    for i in range(len(xd)):
+        gi = None if G is None else G[i]
+        hi_ = None if G is None else ref.least_violation_h(lo[i], hi[i], G[i], h[i])
+        try:
+            xr = ref.solve(xd[i], lo[i], hi[i], W[i], gi, hi_)
+        except RuntimeError:
+            skipped += 1
+            continue
+        errs.append(np.max(np.abs(np.asarray(res.x[i], np.float64) - xr)) / (1.0 + np.max(np.abs(xr))))
+    assert skipped <= 0.01 * len(xd), skipped
+    return max(errs)
+
+
+def _assert_in_box(x, lo, hi):
+    x = np.asarray(x)
+    assert np.all(np.isfinite(x))
+    assert np.all(x >= np.asarray(lo, x.dtype)) and np.all(x <= np.asarray(hi, x.dtype))
+
+
+# ---------------------------------------------------------------------------------------------- clip
+
+
+def test_clip_is_exact_for_none_and_diagonal_metric(dtype):
+    rng = np.random.default_rng(0)
+    xd = rng.normal(size=(4096, 7)).astype(dtype) * 3
+    lo, hi = -np.ones(7, dtype), np.linspace(0.0, 2.0, 7).astype(dtype)
+    for metric in (None, np.linspace(0.1, 10.0, 7).astype(dtype)):
+        res = jl.solve_box_qp(xd, lo, hi, metric)
+        assert res.x.dtype == dtype
+        np.testing.assert_array_equal(res.x, np.clip(xd, lo, hi))
+        assert bool(jnp.all(res.converged)) and int(jnp.max(res.iterations)) == 0
+
+
+def test_clip_derivative_is_true_and_decided_at_ties(dtype):
+    lo = jnp.asarray([0.0, 0.0, 0.0, 0.0, 0.0, 1.0], dtype)
+    hi = jnp.asarray([1.0, 1.0, 1.0, 1.0, 1.0, 1.0], dtype)
+    xd = jnp.asarray([0.5, -1.0, 2.0, 0.0, 1.0, 1.0], dtype)  # free, below, above, tie lo, tie hi, flat box
+    one = jnp.ones_like(xd)
+    _, d_xd = jax.jvp(lambda x: jl.project_box(x, lo, hi), (xd,), (one,))
+    _, d_lo = jax.jvp(lambda a: jl.project_box(xd, a, hi), (lo,), (one,))
+    _, d_hi = jax.jvp(lambda b: jl.project_box(xd, lo, b), (hi,), (one,))
+    np.testing.assert_array_equal(d_xd, [1, 0, 0, 1, 1, 0])  # a tie is free (derivative from inside)
+    np.testing.assert_array_equal(d_lo, [0, 1, 0, 0, 0, 1])
+    np.testing.assert_array_equal(d_hi, [0, 0, 1, 0, 0, 0])
+    g = jax.grad(lambda x: jnp.sum(jl.project_box(x, lo, hi) ** 2))(xd)
+    assert np.all(np.isfinite(g))
+
+
+def test_straight_through_keeps_the_value_and_passes_the_gradient(dtype):
+    rng = np.random.default_rng(1)
+    xd = jnp.asarray(rng.normal(size=(8, 5)) * 3, dtype)
+    W = jnp.asarray(_spd(rng, 1, 5, 10.0)[0], dtype)
+    for metric in (None, W):
+        exact = jl.project_box(xd, -1.0, 1.0, metric)
+        st = jl.project_box(xd, -1.0, 1.0, metric, gradient="straight_through")
+        np.testing.assert_array_equal(exact, st)
+        _assert_in_box(st, -1.0, 1.0)
+    g = jax.grad(lambda x: jnp.sum(jl.project_box(x, -1.0, 1.0, gradient="straight_through")))(xd)
+    np.testing.assert_array_equal(g, np.ones_like(xd))
+
+
+# ----------------------------------------------------------------------------------- dense metric
+
+
+@pytest.mark.parametrize("n, per_kind", [(3, 150), (7, 25)])
+def test_dense_metric_matches_reference_float64(x64, n, per_kind):
+    """4 kinds x 3 condition numbers (1e2, 1e4, 1e6) in one batch: 1800 problems (n=3), 300 (n=7)."""
+    rng = np.random.default_rng(n)
+    parts = [_problems(rng, per_kind, n, cond, kind) for kind in ("random", "none_active", "all_active", "ties")
+             for cond in (1e2, 1e4, 1e6)]
+    xd, lo, hi, W = (np.concatenate(p) for p in zip(*parts))
+    res = jl.solve_box_qp(xd, lo, hi, W)
+    assert bool(jnp.all(res.converged))
+    _assert_in_box(res.x, lo, hi)
+    assert _max_error(res, xd, lo, hi, W) <= 1e-8
+
+
+def test_dense_metric_matches_reference_float32():
+    rng = np.random.default_rng(11)
+    parts = [_problems(rng, 100, 7, 100.0, kind) for kind in ("random", "none_active", "all_active", "ties")]
+    args = [np.concatenate(p).astype(np.float32) for p in zip(*parts)]
+    res = jl.solve_box_qp(*args)
+    assert res.x.dtype == np.float32
+    assert float(jnp.mean(res.converged)) >= 0.99
+    _assert_in_box(res.x, args[1], args[2])
+    assert _max_error(res, *[a.astype(np.float64) for a in args]) <= 1e-4
+
+
+def test_box_holds_exactly_even_when_stopped_early(dtype):
+    rng = np.random.default_rng(3)
+    xd, lo, hi, W = (a.astype(dtype) for a in _problems(rng, 256, 7, 1e4))
+    res = jl.solve_box_qp(xd, lo, hi, W, max_iter=1)
+    _assert_in_box(res.x, lo, hi)
+    assert not bool(jnp.all(res.converged))
+
+
+# ------------------------------------------------------------------------------------- halfspaces
+
+
+@pytest.mark.parametrize("n, m, batch", [(5, 1, 600), (4, 2, 400), (7, 1, 80)])
+def test_halfspaces_match_reference_float64(x64, n, m, batch):
+    rng = np.random.default_rng(10 * n + m)
+    xd, lo, hi, W = _problems(rng, batch, n, 1e3)
+    G = rng.normal(size=(batch, m, n))
+    h = rng.normal(size=(batch, m)) + 0.5
+    if m == 1:  # a quarter of the single rows cannot be met inside the box at all
+        gmin = np.sum(np.minimum(G * lo[:, None], G * hi[:, None]), axis=-1)
+        h = np.where(np.arange(batch)[:, None] % 4 == 0, gmin - rng.uniform(0.01, 1.0, size=(batch, m)), h)
+    res = jl.solve_box_qp(xd, lo, hi, W, G=G, h=h)
+    _assert_in_box(res.x, lo, hi)
+    gmin = np.sum(np.minimum(G * lo[:, None], G * hi[:, None]), axis=-1)
+    np.testing.assert_array_equal(res.infeasible, np.any(gmin > h, axis=-1))
+    if m == 1:
+        assert bool(jnp.all(res.converged))
+        # least violation: nothing in the box does better than the returned point
+        np.testing.assert_allclose(res.violation, np.maximum(gmin[:, 0] - h[:, 0], 0.0), atol=1e-12)
+        assert _max_error(res, xd, lo, hi, W, G, h) <= 1e-8
+    else:  # jointly infeasible pairs are flagged by converged=False (documented limit)
+        feasible = ~np.asarray(res.infeasible)
+        assert np.asarray(res.converged)[feasible].mean() > 0.9
+        ok = np.asarray(res.converged) & feasible
+        idx = np.flatnonzero(ok)
+        sub = jax.tree.map(lambda a: a[idx], res)
+        assert _max_error(sub, xd[idx], lo[idx], hi[idx], W[idx], G[idx], h[idx]) <= 1e-8
+
+
+def test_halfspaces_float32():
+    rng = np.random.default_rng(5)
+    xd, lo, hi, W = _problems(rng, 300, 5, 30.0)
+    G = rng.normal(size=(300, 1, 5))
+    h = rng.normal(size=(300, 1)) + 0.5
+    args = [a.astype(np.float32) for a in (xd, lo, hi, W, G, h)]
+    res = jl.solve_box_qp(*args[:4], G=args[4], h=args[5])
+    _assert_in_box(res.x, args[1], args[2])
+    assert float(jnp.mean(res.converged)) >= 0.98
+    ok = np.flatnonzero(np.asarray(res.converged))
+    sub = jax.tree.map(lambda a: a[ok], res)
+    a64 = [a.astype(np.float64)[ok] for a in args]
+    assert _max_error(sub, *a64) <= 1e-4
+
+
+# ------------------------------------------------------------------------------------- derivatives
+
+
+def _nontie_problem(rng, n, m):
+    """A problem whose active set is stable under small perturbations (no ties, margins > 0.05)."""
+    while True:
+        xd, lo, hi, W = (a[0] for a in _problems(rng, 1, n, 20.0))
+        G = rng.normal(size=(m, n))
+        h = rng.normal(size=(m,)) + 0.3
+        with jax.enable_x64(True):
+            res = jl.solve_box_qp(xd, lo, hi, W, G=G if m else None, h=h if m else None)
+            x = np.asarray(res.x)
+            g = W @ (x - xd)
+        gaps = np.minimum(np.abs(x - lo), np.abs(x - hi))
+        free = gaps > 0.05
+        bound = gaps == 0.0
+        if m:
+            slack = h - G @ x
+            if not (np.all((np.abs(slack) < 1e-9) | (slack > 0.05)) and np.any(np.abs(slack) < 1e-9)):
+                continue
+            # the row's multiplier must be clearly positive: dropping it must change the answer
+            with jax.enable_x64(True):
+                x0 = np.asarray(jl.project_box(xd, lo, hi, W))
+            if np.max(np.abs(x0 - x)) < 0.05:
+                continue
+        if np.all(free | bound) and np.all(np.abs(g[bound]) > 0.05) and free.sum() >= 1 and bound.sum() >= 1:
+            return xd, lo, hi, W, G, h
+
+
+@pytest.mark.parametrize("m", [0, 1])
+def test_implicit_gradients_match_finite_differences(x64, m):
+    rng = np.random.default_rng(7 + m)
+    for _ in range(3):
+        xd, lo, hi, W, G, h = _nontie_problem(rng, 4, m)
+        args = (xd, lo, hi, W) + ((G, h) if m else ())
+
+        def f(x, a, b, w, *gh):  # the metric enters symmetrised: finite differences perturb it freely
+            w = 0.5 * (w + w.T)
+            return jl.project_box(x, a, b, w, G=gh[0], h=gh[1]) if gh else jl.project_box(x, a, b, w)
+
+        check_grads(f, args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-5)
+
+
+def test_gradients_are_finite_at_ties_and_degenerate_problems(dtype):
+    rng = np.random.default_rng(9)
+    xd, lo, hi, W = (a.astype(dtype) for a in _problems(rng, 64, 3, 1e3, "ties"))
+    G = rng.normal(size=(64, 1, 3)).astype(dtype)
+    gmin = np.sum(np.minimum(G * lo[:, None], G * hi[:, None]), axis=-1)
+    h = (gmin + np.where(np.arange(64)[:, None] % 2 == 0, 0.0, -0.5)).astype(dtype)  # tight / infeasible
+
+    def loss(x, a, b, w, g, hh):
+        return jnp.sum(jl.project_box(x, a, b, w) ** 2) + jnp.sum(jl.project_box(x, a, b, w, G=g, h=hh) ** 2)
+
+    grads = jax.grad(loss, argnums=tuple(range(6)))(xd, lo, hi, W, G, h)
+    for g in grads:
+        assert np.all(np.isfinite(np.asarray(g)))
+
+
+# ----------------------------------------------------------------------------- batching, jit, vmap
+
+
+def test_jit_eager_vmap_agree_and_broadcast(dtype):
+    rng = np.random.default_rng(4)
+    xd = rng.normal(size=(3, 4, 3)).astype(dtype) * 3
+    W = _spd(rng, 1, 3, 100.0)[0].astype(dtype)
+    G = rng.normal(size=(2, 3)).astype(dtype)
+    h = np.asarray([0.5, 0.3], dtype)
+    lo, hi = np.asarray(-1.0, dtype), np.full((3,), 1.0, dtype)
+    for kw in ({"G": G, "h": h},):
+        eager = jl.project_box(xd, lo, hi, W, **kw)
+        assert eager.shape == (3, 4, 3) and eager.dtype == dtype
+        jitted = jax.jit(lambda x: jl.project_box(x, lo, hi, W, **kw))(xd)
+        mapped = jax.vmap(jax.vmap(lambda x: jl.project_box(x, lo, hi, W, **kw)))(xd)
+        np.testing.assert_allclose(eager, jitted, rtol=0, atol=1e3 * np.finfo(dtype).eps)
+        np.testing.assert_allclose(eager, mapped, rtol=0, atol=1e3 * np.finfo(dtype).eps)
+    res = jl.solve_box_qp(xd, lo, hi, np.broadcast_to(W, (4, 3, 3)))
+    assert res.converged.shape == (3, 4) and res.iterations.dtype == jnp.int32
+
+
+# ------------------------------------------------------------------------------------------ errors
+
+
+@pytest.mark.parametrize(
+    "args, kwargs, match",
+    [
+        ((np.zeros(3), 1.0, -1.0), {}, r"lower <= upper.*lower=\[1\.0"),
+        ((np.zeros(3), np.zeros(2), 1.0), {}, r"lower must be a scalar or end in n=3"),
+        ((np.zeros(3), -np.inf, 1.0), {}, r"lower must be finite"),
+        ((np.zeros(3), -1.0, 1.0, np.diag([1.0, -1.0, 1.0])), {}, r"symmetric positive definite.*-1\.0"),
+        ((np.zeros(3), -1.0, 1.0, np.array([[1.0, 2, 0], [0, 1, 0], [0, 0, 1]])), {}, r"metric must be symmetric"),
+        ((np.zeros(3), -1.0, 1.0, np.array([1.0, 0.0, 1.0])), {}, r"diagonal metric must be > 0"),
+        ((np.zeros(3), -1.0, 1.0, np.eye(2)), {}, r"dense metric must have shape"),
+        ((np.zeros(3), -1.0, 1.0), {"G": np.ones((1, 3))}, r"G and h go together"),
+        ((np.zeros(3), -1.0, 1.0), {"G": np.ones((2, 3)), "h": np.ones(3)}, r"h must have shape \(\.\.\., m\) with m=2"),
+        ((np.zeros(3), -1.0, 1.0), {"G": np.ones((2, 4)), "h": np.ones(2)}, r"G must have shape"),
+        ((np.zeros(3), -1.0, 1.0), {"G": np.full((1, 3), np.nan), "h": np.ones(1)}, r"G must be finite"),
+        ((np.zeros(3), -1.0, 1.0), {"gradient": "smooth"}, r"gradient must be one of"),
+        ((np.float32(0.0), -1.0, 1.0), {}, r"x_des must have shape"),
+    ],
+)
+def test_bad_inputs_raise_eagerly(args, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jl.project_box(*args, **kwargs)
