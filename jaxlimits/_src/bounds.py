@@ -106,20 +106,26 @@ def _state_and_limits(q, v, limits: JointLimits):
     return jnp.broadcast_to(q.astype(dtype), shape), jnp.broadcast_to(v.astype(dtype), shape), *fields
 
 
-def _rounding_guard(q_min, q_max, v_max, a_max, substeps: int):
-    """Limits tightened by ``2 + substeps`` units of roundoff, so rounding cannot carry a state out.
+def _rounding_guard(q_min, q_max, v_max, a_max, substeps: int, stop_steps=0.0):
+    """Limits tightened by the roundoff of a whole stop, so rounding cannot carry a state out.
 
     The bounds are exact in real arithmetic; a state riding one is then advanced in floating point.
     Each rounded update moves the position by up to half an ulp of ``|q|`` (a zero-order-hold step
     rounds ~3 times; a semi-implicit one rounds ``q`` once per substep), and a few ulps of relative
     error in the velocity move a state on the viability curve by ``~ eps v_max^2 / a_max`` in
-    position (the braking distance ``v^2 / (2 a_max)`` has relative slope 2). So the position
-    limits move in by ``(2 + n) eps (max|q_lim| + 2 v_max^2 / a_max)`` and ``v_max`` by
-    ``(2 + n) eps v_max``. Float32, q_max = 2, v_max = 2, a_max = 12: 1.0 um (n = 1) to 3.8 um
-    (n = 10) of range, and -0.2 to -0.8 % of a bound at dt = 0.01 s that rides the limit; float64:
-    ~1e-15, nothing measurable.
+    position (the braking distance ``v^2 / (2 a_max)`` has relative slope 2).
+
+    One step's worth is not enough: on the viability curve the bound *is* full braking, nothing
+    corrects the state until it stops, and the roundings of every update of the stop add up (they
+    need not cancel: float32 rollouts with ``v_max / a_max = 0.8 s`` went 2.4 um past the limit with
+    one step's margin). So the margin covers ``R = 2 + substeps (1 + stop_steps)`` roundings, where
+    ``stop_steps = ceil(v_max / (a_max dt))`` bounds the control steps of a stop from ``v_max``:
+    the position limits move in by ``R eps (max|q_lim| + 2 v_max^2 / a_max)`` and ``v_max`` by
+    ``R eps v_max``. Float32, q_max = 2, v_max = 2, a_max = 12, dt = 0.01 s, 5 substeps: 18 steps,
+    R = 97, 37 um of range; float64: ~1e-13, nothing measurable. (``stop_steps=0`` is the one-step
+    margin, still used by the jerk-aware bounds.)
     """
-    eps = jnp.finfo(q_min.dtype).eps * (2.0 + substeps)
+    eps = jnp.finfo(q_min.dtype).eps * (2.0 + substeps * (1.0 + stop_steps))
     m_q = eps * (jnp.maximum(jnp.abs(q_min), jnp.abs(q_max)) + 2.0 * v_max * v_max / a_max)
     return q_min + m_q, q_max - m_q, v_max * (1.0 - eps)
 
@@ -229,7 +235,8 @@ def acc_bounds(
     q, v, q_min, q_max, v_max, a_max = _state_and_limits(q, v, limits)
     viable = _viable(model, q, v, q_min, q_max, v_max, a_max)
     if rounding_guard:
-        q_min, q_max, v_max = _rounding_guard(q_min, q_max, v_max, a_max, getattr(model, "n", 1))
+        stop_steps = jnp.ceil(v_max / (a_max * model.period))
+        q_min, q_max, v_max = _rounding_guard(q_min, q_max, v_max, a_max, getattr(model, "n", 3), stop_steps)
     q, v = _saturate(q, v, q_min, q_max, v_max, a_max, model.period)
     upper = jnp.clip(_upper_side(model, method, q_max - q, v, v_max, a_max), -a_max, a_max)
     lower = jnp.clip(-_upper_side(model, method, q - q_min, -v, v_max, a_max), -a_max, a_max)
