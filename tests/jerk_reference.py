@@ -136,3 +136,60 @@ def simulate_step(q, v, a, T, integrator, n, dtype=np.float64):
     if integrator == "zoh":
         return zoh_step_dtype(q, v, a, T, dtype) if dtype != np.float64 else zoh_step(q, v, a, T)
     return semi_implicit_step(q, v, a, T, n, dtype)
+
+
+# ----------------------------------------------------------------------------- max-braking peak, step by step
+
+
+def braking_peak_dense(v, a, lim: JLimits1, T, integrator="zoh", n=1):
+    """Highest displacement of the max-braking plan ``a_i = max(a - i j_max T, -a_max)``, by simulation.
+
+    Vectorised over the arrays ``v``, ``a`` (float64). Zoh: the highest point of every step's
+    parabola after the start (its vertex if the velocity changes sign inside the step, else its
+    end). Semi-implicit: every substep. Simulates until every plan is at ``-a_max`` with ``v <= 0``
+    (from there the position only falls). Independent of jaxlimits' closed forms.
+    """
+    v = np.array(v, np.float64)
+    a = np.asarray(a, np.float64)
+    delta, A, h = lim.j_max * T, lim.a_max, T / n
+    p = np.zeros_like(v)
+    best = np.full_like(v, -np.inf)
+    i = 0
+    while True:
+        ai = np.maximum(a - i * delta, -A)
+        if integrator == "zoh":
+            end = p + v * T + 0.5 * ai * T * T
+            inside = (v > 0) & (ai < 0) & (v < -ai * T)
+            best = np.maximum(best, np.where(inside, p - v * v / (2.0 * np.where(inside, ai, -1.0)), end))
+            p, v = end, v + ai * T
+        else:
+            for _ in range(n):
+                v = v + h * ai
+                p = p + h * v
+                best = np.maximum(best, p)
+        i += 1
+        if np.all((ai <= -A) & (v <= 0)):
+            return best
+
+
+def position_threshold_dense(d, v, a_prev, lim: JLimits1, T, integrator="zoh", n=1, iterations=48):
+    """Largest ``a`` in the jerk box ``[lo, hi]`` with ``braking_peak_dense(v, a) <= d``, by bisection.
+
+    ``hi`` also respects the velocity limit (brute force over the plan's velocities). Returns
+    ``(threshold, lo, hi)``; ``hi`` where it passes, ``lo`` where nothing passes (as ``jerk.py``).
+    """
+    d, v, a_prev = (np.asarray(x, np.float64) for x in (d, v, a_prev))
+    delta, A = lim.j_max * T, lim.a_max
+    lo = np.maximum(np.clip(a_prev, -A, A) - delta, -A)
+    hi = np.minimum(np.clip(a_prev, -A, A) + delta, A)
+    # velocity: v + T sum_{i<K} (a - i delta) <= v_max for every K, i.e. a <= min_K (...)/K
+    K = np.arange(1, int(np.ceil(2 * (lim.v_max + A * T) / (delta * T))) + 3, dtype=np.float64)[:, None]
+    v_thr = np.min(((lim.v_max - v) / T + delta * K * (K - 1) / 2) / K, axis=0)
+    hi = np.maximum(np.minimum(hi, v_thr), lo)
+    ok = lambda x: braking_peak_dense(v, x, lim, T, integrator, n) <= d  # noqa: E731
+    good, bad = lo.copy(), hi.copy()
+    for _ in range(iterations):
+        mid = 0.5 * (good + bad)
+        p = ok(mid)
+        good, bad = np.where(p, mid, good), np.where(p, bad, mid)
+    return np.where(ok(hi), hi, good), lo, hi

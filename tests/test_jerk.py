@@ -19,7 +19,8 @@ import pytest
 sys.path.insert(0, os.path.dirname(__file__))
 
 import jaxlimits as jl  # noqa: E402
-from jerk_reference import JLimits1, lp_jerk_bounds, sample_states, simulate_step  # noqa: E402
+from jerk_reference import (  # noqa: E402
+    JLimits1, braking_peak_dense, lp_jerk_bounds, position_threshold_dense, sample_states, simulate_step)
 
 CONFIGS = {
     "zoh-j200": (JLimits1(-2.0, 2.0, 2.0, 12.0, 200.0), 0.01, "zoh", 1),
@@ -107,6 +108,49 @@ def test_jerk_paper_is_measured_against_the_lp():
     res = lp_comparison("zoh-j200", 30, method="jerk_paper")
     assert res["lp_viable"] > 0
     assert res["unsafe"] > 0 or res["gap_pct"][100] > 1.0, res
+
+
+def _threshold_states(name, count):
+    """Random states (float32-representable) whose position threshold is mostly inside the jerk box."""
+    lim, T, integrator, n = CONFIGS[name]
+    rng = np.random.default_rng(zlib.crc32(f"threshold/{name}".encode()))
+    A, delta = lim.a_max, lim.j_max * T
+    v = lim.v_max * rng.uniform(-1, 1, count) * rng.choice([1.0, 0.1, 0.01], count)
+    a_prev = np.where(rng.uniform(size=count) < 0.1, rng.choice([-A, A], count), rng.uniform(-A, A, count))
+    lo, hi = np.maximum(a_prev - delta, -A), np.minimum(a_prev + delta, A)
+    target = lo + (hi - lo) * rng.uniform(size=count) ** rng.choice([0.25, 1.0, 4.0], count)
+    d = braking_peak_dense(v, target, lim, T, integrator, n) * (1 + rng.choice([0.0, 1e-9, -1e-9], count))
+    wide = rng.uniform(size=count) < 0.15  # anywhere in the range, and a few just past the limit
+    d = np.where(wide, (lim.q_max - lim.q_min) * rng.uniform(-0.01, 1, count) ** 3, d)
+    return tuple(x.astype(np.float32).astype(np.float64) for x in (d, v, a_prev))
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_position_threshold_matches_dense_bisection(name):
+    """The closed-form threshold against bisection on a step-by-step simulation of the max-braking plan.
+
+    2000 random states per configuration (``JERK_DENSE_STATES``), most with the threshold strictly
+    inside the jerk box. float64: never above the reference, and equal to 1e-9 of the box width.
+    float32 (same inputs): at most 1e-6 a_max above it (rounding of the box), and within 1e-3 of
+    the width (p99; 1e-2 max).
+    """
+    from jaxlimits._src import jerk
+
+    lim, T, integrator, n = CONFIGS[name]
+    d, v, a_prev = _threshold_states(name, int(os.environ.get("JERK_DENSE_STATES", "2000")))
+    ref, lo, hi = position_threshold_dense(d, v, a_prev, lim, T, integrator, n)
+    width = np.maximum(hi - lo, 1e-12)
+    model = jerk.make_model(T, integrator, n)
+    side = jax.jit(lambda d, v, a: jerk._upper_side(model, d, v, a, lim.v_max, lim.a_max, lim.j_max * T))
+    assert np.mean(ref < hi) > 0.5 and np.mean((ref > lo) & (ref < hi)) > 0.4  # mostly inside the box
+    with jax.enable_x64(True):
+        got = np.asarray(side(d, v, a_prev))
+    assert np.max(got - ref) <= 1e-12 * lim.a_max, np.max(got - ref)
+    assert np.max((ref - got) / width) <= 1e-9, np.max((ref - got) / width)
+    got32 = np.asarray(side(*(x.astype(np.float32) for x in (d, v, a_prev)))).astype(np.float64)
+    assert np.max(got32 - ref) <= 1e-6 * lim.a_max, np.max(got32 - ref)
+    gap = np.maximum(ref - got32, 0.0) / np.maximum(width, 1e-3 * lim.j_max * T)  # a collapsed box: its rounding
+    assert np.percentile(gap, 99) <= 1e-3 and np.max(gap) <= 1e-2, (np.percentile(gap, 99), np.max(gap))
 
 
 # ----------------------------------------------------------------------------- rollouts
