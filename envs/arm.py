@@ -126,11 +126,14 @@ class ArmReach(Env):
       xml_path: the arm's MJCF (see ``load_arm`` for its conventions).
       ee_site: name of the end-effector site.
       target_low, target_high: corners of the box targets are drawn from [m].
-      torque_samples: states sampled for the torque-derived ``a_max`` (0 keeps the nominal one).
+      torque_samples: states sampled for the torque-derived ``a_max`` (0 keeps the nominal one, the
+        datasheet's: ``torque_margin`` is then not applied).
       torque_margin: ``a_max = min(1, torque_margin * s) * a_nominal`` with ``s`` the worst sampled
         ``box_scale``. Sampling underestimates the worst case (Panda: s = 0.256 over 2e4 samples,
         0.218 over 1e6), hence 0.8; the torque-violation metric checks the outcome.
       reset_margin: initial positions are uniform in the range shrunk by this fraction at each end.
+      target: ``"reachable"`` (targets are end-effector positions of random configurations inside
+        the limits) or ``"box"`` (uniform in ``[target_low, target_high]``); see ``reset``.
 
     Attributes: ``limits`` (``jl.JointLimits``), ``tau_max`` (n,), ``dt`` (control period [s]),
     ``frame_skip`` (physics substeps per step), ``integrator`` (``"semi_implicit"``: what
@@ -139,7 +142,7 @@ class ArmReach(Env):
     """
 
     def __init__(self, xml_path, ee_site: str, target_low, target_high, torque_samples: int = 20000,
-                 torque_margin: float = 0.8, reset_margin: float = 0.1, seed: int = 0):
+                 torque_margin: float = 0.8, reset_margin: float = 0.1, seed: int = 0, target: str = "reachable"):
         mjm = load_arm(xml_path)
         self.mj_model = mjm
         self.xml_path = pathlib.Path(xml_path)
@@ -166,12 +169,15 @@ class ArmReach(Env):
             M, h = dynamics_c(mjm, qs, vs)
             scale = float(np.min(_torque.box_scale(M, h, self.tau_max, a_nom, xp=np)))
         self.torque_scale = scale
-        a_max = a_nom * min(1.0, torque_margin * scale)
+        a_max = a_nom * min(1.0, torque_margin * scale) if torque_samples else a_nom.copy()
         self.limits = jl.JointLimits(q_min, q_max, v_max, a_max, j_max)
         self.ee_site = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_SITE, ee_site)
         self.target_low = np.asarray(target_low, np.float32)
         self.target_high = np.asarray(target_high, np.float32)
         self.reset_margin = reset_margin
+        if target not in ("reachable", "box"):
+            raise ValueError(f"target must be 'reachable' or 'box', got {target!r}")
+        self.target_mode = target
         sim = mujoco.MjModel.from_xml_path(str(xml_path))
         sim.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT | mujoco.mjtDisableBit.mjDSBL_CONTACT
         sim.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP  # no damping: the Euler step is explicit in M^-1
@@ -195,13 +201,29 @@ class ArmReach(Env):
         return jnp.asarray(x, jnp.float32)
 
     def reset(self, rng: jax.Array) -> State:
+        """Random start (uniform in the range shrunk by ``reset_margin``, at rest) and target.
+
+        ``target="reachable"`` (default): the end-effector position of another random configuration
+        drawn the same way, so every target can be reached inside the joint limits;
+        ``target="box"``: uniform in ``[target_low, target_high]`` (some corners are out of reach).
+        """
         k_q, k_t = jax.random.split(rng)
         lim = self.limits
         span = lim.q_max - lim.q_min
-        q = jax.random.uniform(k_q, (self.n,), jnp.float32, self._f32(lim.q_min + self.reset_margin * span),
-                               self._f32(lim.q_max - self.reset_margin * span))
-        target = jax.random.uniform(k_t, (3,), jnp.float32, self.target_low, self.target_high)
+        lo, hi = self._f32(lim.q_min + self.reset_margin * span), self._f32(lim.q_max - self.reset_margin * span)
+        q = jax.random.uniform(k_q, (self.n,), jnp.float32, lo, hi)
+        if self.target_mode == "reachable":
+            q_t = jax.random.uniform(k_t, (self.n,), jnp.float32, lo, hi)
+            target = self.ee_position(q_t)
+        else:
+            target = jax.random.uniform(k_t, (3,), jnp.float32, self.target_low, self.target_high)
         return self.reset_to(q, jnp.zeros_like(q), target)
+
+    @_mjx_broadcasting
+    def ee_position(self, q) -> jax.Array:
+        """End-effector position [m] at joint positions ``q`` (MJX forward kinematics); ``(3,)``."""
+        d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=self._f32(q)))
+        return d.site_xpos[self.ee_site]
 
     @_mjx_broadcasting
     def reset_to(self, q, v, target) -> State:

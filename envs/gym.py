@@ -7,16 +7,22 @@ import of this module):
     gymnasium.make("jaxlimits/PandaReach-v0", shield="viability")
     gymnasium.make("jaxlimits/PlanarReach-v0", shield="none")
 
-``shield`` is one of ``SafetyWrapper``'s methods. The reach task has no terminal state
-(``terminated`` is always False); episodes end by truncation after ``max_episode_steps``
-(``TimeLimit`` from the registration for the single env; the vector env truncates itself and
-resets in the same step, ``autoreset_mode = SAME_STEP``, the last observation in
-``info["final_obs"]``).
+``shield`` is one of ``SafetyWrapper``'s methods; ``torque_box=True`` adds its per-state torque box.
+The reach task has no terminal state (``terminated`` is always False); episodes end by truncation
+after ``max_episode_steps`` (``TimeLimit`` from the registration for the single env; the vector env
+truncates itself and resets in the same step, ``autoreset_mode = SAME_STEP``, as Gymnasium's
+``SyncVectorEnv`` does: for the envs that were reset, ``info["final_obs"]`` (object array, ``None``
+elsewhere) holds the last observation and ``info["final_info"]`` the last step's info, masked by
+``info["_final_obs"]``/``info["_final_info"]``, while the top-level ``info`` entries of those envs
+describe the fresh state, as a reset's do). ``gymnasium.make_vec(id, num_envs, shield=...)`` builds
+an ``ArmVectorEnv`` (the registered ``vector_entry_point``); ``vectorization_mode="sync"`` also
+works (a ``SyncVectorEnv`` of ``ArmEnv``s, each stepped on its own).
 
 Every step's ``info`` carries ``info["violation"]``: ``{"position", "velocity", "acceleration",
 "jerk", "torque"}`` -> the largest violation magnitude over the joints (and substeps) in this step,
 0.0 when none, and ``info["qpos"]``, ``info["qvel"]`` (the arm's joints after the step), plus
-``info["intervention"]`` (``max |a_safe - a_des|``) and ``info["accel_error"]``.
+``info["intervention"]`` (``max |a_safe - a_des|``) and ``info["accel_error"]``. A violation in the
+last step of a vector env's episode is in ``info["final_info"]["violation"]``.
 
 ``render_mode="rgb_array"`` renders with MuJoCo's ``Renderer``; headless it needs
 ``MUJOCO_GL=egl`` (set by default by ``jaxlimits.envs`` when unset) and libEGL; ``osmesa`` needs
@@ -47,9 +53,9 @@ def _arm(name: str):
 
 
 @functools.cache
-def _batched(arm: str, shield: str):
+def _batched(arm: str, shield: str, torque_box: bool = False):
     """Jitted ``reset(keys)`` and ``step(states, actions)`` for a batch of shielded envs (cached)."""
-    wrapped = SafetyWrapper(_arm(arm), shield)
+    wrapped = SafetyWrapper(_arm(arm), shield, torque_box=torque_box)
     return jax.jit(jax.vmap(wrapped.reset)), jax.jit(jax.vmap(wrapped.step)), wrapped
 
 
@@ -68,12 +74,12 @@ def _infos(states) -> dict:
 class _Core:
     """Shared state handling for ``ArmEnv`` and ``ArmVectorEnv``."""
 
-    def _setup(self, arm: str, shield: str, num_envs: int, render_mode, width: int, height: int):
+    def _setup(self, arm: str, shield: str, num_envs: int, render_mode, width: int, height: int, torque_box: bool = False):
         if arm not in ARMS:
             raise ValueError(f"arm must be one of {tuple(ARMS)}, got {arm!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self._reset_fn, self._step_fn, self._wrapped = _batched(arm, shield)
+        self._reset_fn, self._step_fn, self._wrapped = _batched(arm, shield, bool(torque_box))
         env = self._wrapped.env
         self.arm, self.shield = arm, shield
         self._n = env.n
@@ -121,8 +127,9 @@ class ArmEnv(_Core, gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
 
-    def __init__(self, arm: str = "planar", shield: str = "viability", render_mode=None, width: int = 240, height: int = 240):
-        env, self.observation_space, self.action_space = self._setup(arm, shield, 1, render_mode, width, height)
+    def __init__(self, arm: str = "planar", shield: str = "viability", render_mode=None, width: int = 240, height: int = 240,
+                 torque_box: bool = False):
+        env, self.observation_space, self.action_space = self._setup(arm, shield, 1, render_mode, width, height, torque_box)
         self.render_mode = render_mode
         self.metadata = dict(self.metadata, render_fps=int(round(1.0 / env.dt)))
 
@@ -156,8 +163,8 @@ class ArmVectorEnv(_Core, VectorEnv):
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int, arm: str = "planar", shield: str = "viability", max_episode_steps: int = 500,
-                 render_mode=None, width: int = 240, height: int = 240):
-        env, obs1, act1 = self._setup(arm, shield, num_envs, render_mode, width, height)
+                 render_mode=None, width: int = 240, height: int = 240, torque_box: bool = False):
+        env, obs1, act1 = self._setup(arm, shield, num_envs, render_mode, width, height, torque_box)
         self.num_envs = num_envs
         self.single_observation_space, self.single_action_space = obs1, act1
         self.observation_space = gymnasium.vector.utils.batch_space(obs1, num_envs)
@@ -166,12 +173,15 @@ class ArmVectorEnv(_Core, VectorEnv):
         self.max_episode_steps = max_episode_steps
         self._t = np.zeros(num_envs, np.int64)
 
+    def _reset_info(self, states):
+        info = _infos(states)
+        info["violation"] = {k: np.zeros(self.num_envs) for k in VIOLATION_KEYS}
+        return info
+
     def reset(self, *, seed=None, options=None):
         self._states = self._do_reset(seed)
         self._t[:] = 0
-        info = _infos(self._states)
-        info["violation"] = {k: np.zeros(self.num_envs) for k in VIOLATION_KEYS}
-        return np.asarray(self._states.obs, np.float32), info
+        return np.asarray(self._states.obs, np.float32), self._reset_info(self._states)
 
     def step(self, actions):
         a = jnp.asarray(np.asarray(actions, np.float32).reshape(self.num_envs, self._n))
@@ -183,8 +193,10 @@ class ArmVectorEnv(_Core, VectorEnv):
         truncated = self._t >= self.max_episode_steps
         info = _infos(self._states)
         if truncated.any():
-            info["final_obs"] = obs.copy()
-            info["_final_obs"] = truncated.copy()
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            for i in np.flatnonzero(truncated):
+                final_obs[i] = obs[i].copy()
+            final_info = info
             self._key, sub = jax.random.split(self._key)
             fresh = self._reset_fn(jax.random.split(sub, self.num_envs))
             mask = jnp.asarray(truncated)
@@ -192,6 +204,11 @@ class ArmVectorEnv(_Core, VectorEnv):
                                         fresh, self._states)
             obs = np.asarray(self._states.obs, np.float32)
             self._t[truncated] = 0
+            # top-level info of the reset envs: the fresh state's, as Gymnasium's SAME_STEP autoreset gives
+            info = jax.tree.map(lambda r, f: np.where(truncated.reshape((-1,) + (1,) * (f.ndim - 1)), r, f),
+                                self._reset_info(self._states), final_info)
+            info.update(final_obs=final_obs, _final_obs=truncated.copy(), final_info=final_info,
+                        _final_info=truncated.copy())
         return obs, reward, terminated, truncated, info
 
     def render(self):

@@ -67,3 +67,72 @@ def test_vector_env_shares_the_compiled_step_and_autoresets():
     assert trunc.all() and not term.any() and "final_obs" in info
     assert set(info["violation"]) == set(VIOLATION_KEYS) and info["qpos"].shape == (1, 3)
     venv.close()
+
+
+# ---- vector API (2 envs: one more compilation of the planar step, shared by the tests below) ---------
+@pytest.fixture(scope="module")
+def venv():
+    v = jgym.ArmVectorEnv(2, arm="planar", shield="viability", max_episode_steps=3)
+    yield v
+    v.close()
+
+
+def test_vector_env_reset_step_shapes_and_seeding(venv):
+    obs, info = venv.reset(seed=7)
+    obs_b, _ = venv.reset(seed=7)
+    np.testing.assert_array_equal(obs, obs_b)
+    assert obs.shape == (2, venv.single_observation_space.shape[0]) and obs.dtype == np.float32
+    assert venv.observation_space.contains(obs)
+    assert set(info["violation"]) == set(VIOLATION_KEYS)
+    assert all(v.shape == (2,) and not v.any() for v in info["violation"].values())
+    assert info["qpos"].shape == (2, 3) and info["qvel"].shape == (2, 3)
+    actions = venv.action_space.sample()
+    assert actions.shape == (2, 3)
+    obs, r, term, trunc, info = venv.step(actions)
+    assert obs.shape == (2, 9 + 6) and r.shape == (2,) and term.shape == (2,) and trunc.shape == (2,)
+    assert term.dtype == bool and trunc.dtype == bool and not term.any() and not trunc.any()
+    assert "final_obs" not in info and "final_info" not in info
+    assert set(info["violation"]) == set(VIOLATION_KEYS) and all(v.shape == (2,) for v in info["violation"].values())
+    assert info["intervention"].shape == (2,) and info["accel_error"].shape == (2,)
+
+
+def test_vector_env_autoreset_same_step(venv):
+    obs0, _ = venv.reset(seed=1)
+    push = np.ones((2, 3), np.float32)
+    for t in range(3):
+        obs, r, term, trunc, info = venv.step(push)
+        if t < 2:
+            assert not trunc.any() and "final_obs" not in info
+            last_obs = obs
+    assert trunc.all() and not term.any()
+    # Gymnasium's SAME_STEP convention: final_obs (object array), final_info, masks; obs is the fresh state's
+    assert info["_final_obs"].all() and info["_final_info"].all()
+    assert info["final_obs"].dtype == object and info["final_obs"][0].shape == obs0.shape[1:]
+    for i in range(2):
+        assert not np.array_equal(info["final_obs"][i], obs[i])
+        assert not np.array_equal(info["final_obs"][i], last_obs[i])
+    assert set(info["final_info"]["violation"]) == set(VIOLATION_KEYS)
+    np.testing.assert_allclose(np.cos(info["final_info"]["qpos"]), np.stack(info["final_obs"])[:, :3], rtol=1e-6)
+    np.testing.assert_allclose(np.cos(info["qpos"]), obs[:, :3], rtol=1e-6)  # top-level info: the fresh state
+    np.testing.assert_array_equal(info["qvel"], 0.0)
+    assert all(not v.any() for v in info["violation"].values())
+    # the episode counter restarted: three more steps to the next truncation
+    for t in range(3):
+        obs, r, term, trunc, info = venv.step(push)
+        assert trunc.all() == (t == 2)
+
+
+def test_make_vec(venv):
+    v = gymnasium.make_vec("jaxlimits/PlanarReach-v0", num_envs=2, shield="viability")
+    assert isinstance(v.unwrapped, jgym.ArmVectorEnv) and v.num_envs == 2
+    assert v.unwrapped.max_episode_steps == 500  # from the registration
+    assert v.unwrapped._step_fn is venv._step_fn  # one compiled step per (arm, shield)
+    obs, _ = v.reset(seed=0)
+    obs, r, term, trunc, info = v.step(np.zeros((2, 3), np.float32))
+    assert obs.shape == (2, 15) and set(info["violation"]) == set(VIOLATION_KEYS)
+    v.close()
+    sync = gymnasium.make_vec("jaxlimits/PlanarReach-v0", num_envs=2, vectorization_mode="sync", shield="viability")
+    obs, _ = sync.reset(seed=0)
+    obs, r, term, trunc, info = sync.step(np.zeros((2, 3), np.float32))
+    assert obs.shape == (2, 15) and info["violation"]["position"].shape == (2,)
+    sync.close()

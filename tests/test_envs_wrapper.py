@@ -76,3 +76,115 @@ def test_bad_configuration_raises(env):
         SafetyWrapper(env, "magic")
     with pytest.raises(TypeError):
         SafetyWrapper(object(), "clip")
+
+
+# ---- Brax training wrappers (VmapWrapper -> EpisodeWrapper -> AutoResetWrapper) ------------------
+EPISODE = 5
+
+
+@pytest.fixture(scope="module")
+def brax_run(env):
+    """``SafetyWrapper(viability, torque_box=True)`` under ``brax.envs.wrappers.training.wrap``: 4 envs, 2 episodes + 1 step.
+
+    The torque box is on so that one compilation covers it too (on the planar arm it never binds:
+    the nominal ``a_max`` needs at most 1/1.86 of the motors' torque).
+    """
+    from brax.envs.wrappers import training
+
+    w = SafetyWrapper(env, "viability", torque_box=True)
+    benv = training.wrap(w, episode_length=EPISODE, action_repeat=1)
+    reset, step = jax.jit(benv.reset), jax.jit(benv.step)
+    s = reset(jax.random.split(jax.random.PRNGKey(2), 4))
+    action = jnp.broadcast_to(jnp.asarray([1.0, -1.0, 1.0], jnp.float32), (4, env.n))
+    states = [s]
+    for _ in range(2 * EPISODE + 1):
+        states.append(step(states[-1], action))
+    return w, states
+
+
+def test_brax_training_wrap_truncates_and_autoresets(brax_run, env):
+    w, states = brax_run
+    s0 = states[0]
+    assert s0.obs.shape == (4, env.observation_size) and s0.pipeline_state.qpos.shape == (4, env.n)
+    for t, s in enumerate(states[1:], start=1):
+        ended = t % EPISODE == 0
+        np.testing.assert_array_equal(s.done, float(ended))
+        np.testing.assert_array_equal(s.info["truncation"], float(ended))  # done by the time limit only
+        np.testing.assert_array_equal(s.info["steps"], (t - 1) % EPISODE + 1)
+        if ended:  # AutoResetWrapper: back to the episode's first state
+            np.testing.assert_array_equal(s.pipeline_state.qpos, s0.pipeline_state.qpos)
+            np.testing.assert_array_equal(s.obs, s0.obs)
+        else:
+            assert np.all(np.asarray(s.pipeline_state.qpos) != np.asarray(s0.pipeline_state.qpos))
+
+
+def test_brax_training_wrap_accumulates_episode_metrics(brax_run):
+    w, states = brax_run
+    ep = [s.info["episode_metrics"] for s in states]
+    for key in ("intervention", "count/position", "violation/velocity", "torque_box_conflict", "viable", "distance"):
+        assert key in ep[0]
+    # episode sums of the per-step metrics, restarted after each episode end
+    total = sum(np.asarray(s.metrics["intervention"]) for s in states[1:EPISODE + 1])
+    np.testing.assert_allclose(ep[EPISODE]["intervention"], total, rtol=1e-5)
+    dist = sum(np.asarray(s.metrics["distance"]) for s in states[1:EPISODE + 1])
+    np.testing.assert_allclose(ep[EPISODE]["distance"], dist, rtol=1e-5)
+    assert np.all(dist > 0)
+    np.testing.assert_array_equal(ep[EPISODE]["length"], EPISODE)
+    np.testing.assert_array_equal(ep[EPISODE + 1]["length"], 1)
+    np.testing.assert_allclose(ep[EPISODE + 1]["intervention"], states[EPISODE + 1].metrics["intervention"], rtol=1e-6)
+    np.testing.assert_array_equal(ep[EPISODE]["viable"], EPISODE)
+    for k in VIOLATION_KEYS:
+        if k != "jerk":  # the viability shield does not bound jerk
+            np.testing.assert_array_equal(ep[2 * EPISODE][f"count/{k}"], 0.0)
+
+
+def test_torque_box_on_the_planar_arm_never_binds(brax_run, env):
+    """Same bounds as without the box (box scale > 1 at every visited state); the box is ``torque_acc_box_conservative``."""
+    from jaxlimits._src import torque
+
+    w, states = brax_run
+    plain = jax.jit(SafetyWrapper(env, "viability").bounds)
+    for prev, s in zip(states[:3], states[1:4]):  # info["lower"/"upper"]: the bounds of the step that led to s
+        assert np.all(np.asarray(s.metrics["torque_box_scale"]) > 1.0)
+        np.testing.assert_array_equal(s.metrics["torque_box_conflict"], 0.0)
+        b0 = plain(prev)
+        np.testing.assert_array_equal(s.info["lower"], b0.lower)
+        np.testing.assert_array_equal(s.info["upper"], b0.upper)
+    s = states[2]
+    M, h = jax.jit(jax.vmap(env.mass_and_bias))(s.pipeline_state.qpos, s.pipeline_state.qvel)
+    tau = np.float32(w.torque_box_margin) * np.asarray(env.tau_max, np.float32)
+    lo_c, hi_c = torque.torque_acc_box_conservative(M, h, tau, env.limits.a_max)
+    scale = np.asarray(states[3].metrics["torque_box_scale"])  # the box of the step from s
+    np.testing.assert_allclose(scale, torque.box_scale(M, h, tau, env.limits.a_max), rtol=1e-5)
+    np.testing.assert_allclose(hi_c, np.clip(scale, 0, 1)[:, None] * env.limits.a_max[None], rtol=1e-5)
+    np.testing.assert_array_equal(lo_c, -hi_c)
+
+
+@pytest.mark.parametrize("method", ["none", "viability"])
+def test_non_finite_actions_never_reach_the_simulator(env, method):
+    """NaN/inf commands are replaced, whole, by braking (projected into the bounds) and counted."""
+    w = SafetyWrapper(env, method)
+    bad_actions = jnp.array([[jnp.nan, 0.0, 0.0], [0.5, jnp.inf, -0.5], [-jnp.inf, jnp.nan, 1.0], [0.1, 0.2, 0.3]],
+                            jnp.float32)[:, : env.n]
+
+    @jax.jit
+    def run(key):
+        s = w.reset(key)
+        s = w.step(s, jnp.full((env.n,), 1.0, jnp.float32))  # get moving
+
+        def body(s, a):
+            s = w.step(s, a)
+            return s, (s.metrics["nonfinite_action"], s.metrics["intervention"], s.pipeline_state.qpos,
+                       s.pipeline_state.qvel, s.info["a_safe"], s.metrics["count/position"])
+
+        return jax.lax.scan(body, s, jnp.tile(bad_actions, (20, 1)))
+
+    _, (flag, interv, qs, vs, a_safe, count_pos) = run(jax.random.PRNGKey(3))
+    flag = np.asarray(flag)
+    np.testing.assert_array_equal(flag, np.tile([1.0, 1.0, 1.0, 0.0], 20))
+    for x in (interv, qs, vs, a_safe):
+        assert np.all(np.isfinite(np.asarray(x)))
+    # a replaced step is a braking command inside the acceleration limits
+    assert np.all(np.abs(np.asarray(a_safe)) <= np.asarray(env.limits.a_max, np.float32) + 1e-5)
+    if method == "viability":
+        assert np.sum(np.asarray(count_pos)) == 0
