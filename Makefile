@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench joint-space venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,13 +19,16 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m jaxlimits.training.cli demo --out results/demo
+	$(PY) -m jaxlimits.training.cli main --out results/main
 
 test: $(STAMP)
 	$(PY) -m pytest -q
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_bounds.py
+
+joint-space: $(STAMP)
+	$(PY) -m jaxlimits.training.cli joint-space --out results/joint_space
 
 clean:
 	rm -rf $(VENV) results .pytest_cache .hypothesis

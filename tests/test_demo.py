@@ -1,4 +1,4 @@
-"""The main job end to end: the CLI runs Del Prete's Fig. 4 experiment and writes its artifacts."""
+"""The joint-space experiment end to end: the CLI runs Del Prete's Fig. 4 experiment and writes its artifacts."""
 
 import json
 import subprocess
@@ -6,8 +6,8 @@ import sys
 
 
 def test_demo_cli_reproduces_fig4(tmp_path):
-    out = tmp_path / "demo"
-    proc = subprocess.run([sys.executable, "-m", "jaxlimits.training.cli", "demo", "--out", str(out)],
+    out = tmp_path / "joint_space"
+    proc = subprocess.run([sys.executable, "-m", "jaxlimits.training.cli", "joint-space", "--out", str(out)],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert "max pos viol [rad]" in proc.stdout

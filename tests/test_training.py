@@ -1,0 +1,208 @@
+"""Training, evaluation and the main job: configs, checkpoints, violation tallies, sharding, the CLI."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxlimits.training import checkpoint, config, evaluate, tally
+
+
+# ----------------------------------------------------------------------------- configs
+
+
+def test_shipped_configs_load_and_validate():
+    for path in sorted(config.CONFIG_DIR.glob("*.json")):
+        cfg = config.load(path)
+        assert config.from_dict(cfg.to_dict()) == cfg
+    assert config.load("planar_reach_ppo").eval_episodes >= 10_000
+
+
+@pytest.mark.parametrize("bad, field", [
+    ({"shield": "nope"}, "shield"),
+    ({"env": "cartpole"}, "env"),
+    ({"num_timesteps": 0}, "num_timesteps"),
+    ({"ppo": {"num_envs": -4}}, "ppo.num_envs"),
+    ({"ppo": {"learning_rate": -1.0}}, "ppo.learning_rate"),
+    ({"colour": "red"}, "colour"),
+    ({"ppo": {"num_envs": 3}}, "num_envs"),
+    ({"episode_length": 201}, "action_repeat"),
+])
+def test_bad_config_raises_with_the_field(bad, field):
+    d = config.load("tiny").to_dict()
+    ppo = dict(d["ppo"], **bad.pop("ppo", {}))
+    d.update(bad)
+    d["ppo"] = ppo
+    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+        config.from_dict(d)
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def test_checkpoint_roundtrip_and_refusals(tmp_path):
+    params = {"w": np.arange(6, dtype=np.float32).reshape(2, 3), "b": (np.ones(3), np.float32(2.5))}
+    path = checkpoint.save(tmp_path / "p.msgpack", params, meta={"env": "planar_reach"})
+    back = checkpoint.load(path, jax.tree.map(np.zeros_like, params))
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(back)):
+        np.testing.assert_array_equal(a, b)
+    assert checkpoint.read_meta(path) == {"env": "planar_reach"}
+    with pytest.raises(ValueError, match="does not match"):
+        checkpoint.load(path, {"other": np.zeros(2)})
+    (tmp_path / "junk.msgpack").write_bytes(b"\x80\x04not msgpack at all")
+    with pytest.raises(ValueError):
+        checkpoint.load(tmp_path / "junk.msgpack", params)
+    assert b"pickle" not in path.read_bytes()
+
+
+# ----------------------------------------------------------------------------- tallies
+
+
+@pytest.fixture(scope="module")
+def planar():
+    from jaxlimits.envs import make_planar_reach
+
+    return make_planar_reach(torque_samples=0)
+
+
+@pytest.mark.parametrize("action_repeat", [1, 2])
+def test_tally_counts_every_env_step(planar, action_repeat):
+    """The host tally equals the violations summed over every env step, batch and action repeat."""
+    from jaxlimits.envs import SafetyWrapper
+
+    counts = tally.Tally()
+    env = tally.wrap_for_training(counts)(SafetyWrapper(planar, method="none"), episode_length=30 * action_repeat,
+                                          action_repeat=action_repeat)
+    batch, steps = 4, 80  # auto-resets after 30 steps: totals run across episodes
+    state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
+
+    @jax.jit
+    def run(state, key):
+        def body(s, k):
+            s = env.step(s, jnp.full((batch, planar.action_size), 1.5) * jnp.sign(jax.random.normal(k, (batch, 1))))
+            return s, s.info["tally"]
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))
+
+    state, per_step = run(state, jax.random.PRNGKey(1))
+    jax.effects_barrier()
+    assert counts.env_steps == batch * steps * action_repeat
+    final = state.info["tally"]
+    for k in ("position", "velocity"):
+        expect = int(np.sum(np.asarray(final[f"count/{k}"])))
+        assert counts.counts[f"count/{k}"] == expect
+        assert counts.maxes[f"violation/{k}"] == pytest.approx(float(np.max(final[f"violation/{k}"])))
+    assert counts.counts["count/velocity"] > 0  # the unshielded full-acceleration policy does violate
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+def test_scripted_evaluation_counts_and_shield(planar):
+    from jaxlimits.envs import SafetyWrapper
+
+    rows = {}
+    for shield in ("none", "viability"):
+        env = SafetyWrapper(planar, method=shield)
+        pol = evaluate.scripted_policy("toward_limit", env.action_size)
+        rows[shield] = evaluate.evaluate(env, pol, None, episodes=16, episode_length=150, seed=3)
+    assert rows["none"]["violations/position"] > 0 and rows["none"]["max_violation/position"] > 0.05
+    assert rows["viability"]["violations/position"] == 0 and rows["viability"]["violations/velocity"] == 0
+    assert rows["viability"]["env_steps"] == 16 * 150
+    table = evaluate.format_table(rows)
+    assert "viability" in table and "none" in table
+    with pytest.raises(ValueError, match="kind"):
+        evaluate.scripted_policy("sideways", 3)
+
+
+SHARDING_SCRIPT = textwrap.dedent("""
+    import json, jax, numpy as np
+    from jaxlimits.envs import make_planar_reach, SafetyWrapper
+    from jaxlimits.training import evaluate
+    assert len(jax.devices()) == 2, jax.devices()
+    env = SafetyWrapper(make_planar_reach(torque_samples=0), method="none")
+    pol = evaluate.scripted_policy("bang_bang", env.action_size)
+    out = {}
+    for n in (1, 2):
+        per = evaluate.rollout_episodes(env, pol, None, episodes=5, episode_length=40, action_repeat=2, seed=7,
+                                        devices=jax.devices()[:n])
+        out[n] = {k: np.asarray(v).tolist() for k, v in per.items()}
+    print("JSON" + json.dumps(out))
+""")
+
+
+def test_sharded_evaluation_equals_one_device():
+    """5 episodes (padded to 6) over 2 simulated host devices give the results of 1 device."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    proc = subprocess.run([sys.executable, "-c", SHARDING_SCRIPT], capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.split("JSON", 1)[1])
+    one, two = out["1"], out["2"]
+    assert set(one) == set(two)
+    for k in one:
+        np.testing.assert_allclose(np.asarray(one[k]), np.asarray(two[k]), rtol=1e-6, atol=1e-6, err_msg=k)
+    assert sum(one["count/position"]) > 0  # the comparison covers violations, not only zeros
+
+
+# ----------------------------------------------------------------------------- the CLI end to end
+
+
+def _cli(*args, timeout=900):
+    proc = subprocess.run([sys.executable, "-m", "jaxlimits.training.cli", *args], capture_output=True, text=True,
+                          timeout=timeout)
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
+    return proc
+
+
+def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
+    """``jaxlimits main`` (tiny config) trains both shields, evaluates, plots; ``evaluate --run`` reloads."""
+    out = tmp_path / "main"
+    proc = _cli("main", "--config", "tiny", "--out", str(out))
+    assert "| viability |" in proc.stdout and "| none |" in proc.stdout
+    results = json.loads((out / "results.json").read_text())
+    vi = results["shields"]["viability"]
+    assert vi["training"]["env_steps"] >= 4000
+    assert vi["training"]["violations/position"] == 0 and vi["training"]["violations/velocity"] == 0
+    assert vi["evaluation"]["episodes"] == 64
+    assert vi["evaluation"]["violations/position"] == 0 and vi["evaluation"]["violations/velocity"] == 0
+    png = (out / "training_curves.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = [json.loads(x) for x in (out / "runs" / "viability" / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) >= 2 and rows[-1]["step"] >= 4000
+
+    # reload the checkpoint: same parameters, and the evaluation from the CLI reproduces the main job's
+    from jaxlimits.training import brax_ppo
+
+    cfg, policy, params = brax_ppo.load_policy(out / "runs" / "viability")
+    assert cfg.shield == "viability" and cfg.env == "planar_reach"
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(params))
+    proc = _cli("evaluate", "--run", str(out / "runs" / "viability"), "--episodes", "64", "--seed", str(cfg.seed + 1),
+                "--json", str(tmp_path / "eval.json"))
+    again = json.loads((tmp_path / "eval.json").read_text())["viability"]
+    for k in ("return_mean", "success_rate", "violations/position", "violations/velocity"):
+        assert again[k] == pytest.approx(vi["evaluation"][k], rel=1e-6), k
+
+
+def test_sb3_ppo_runs_on_the_gymnasium_env(tmp_path):
+    from jaxlimits.training import sb3_ppo
+
+    model, metrics = sb3_ppo.train("viability", total_timesteps=256, out=tmp_path, n_steps=128, batch_size=64,
+                                   max_episode_steps=50)
+    assert metrics["env_steps"] >= 256
+    assert metrics["violations/position"] == 0 and metrics["violations/velocity"] == 0
+    before = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    for p in model.policy.parameters():
+        p.data.zero_()
+    sb3_ppo.load_policy_arrays(model, tmp_path / "policy.npz")
+    for k, v in model.policy.state_dict().items():
+        assert bool((v == before[k]).all()), k

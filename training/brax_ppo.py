@@ -1,0 +1,148 @@
+"""Brax PPO with the shield inside the env, every violation counted, msgpack checkpoints.
+
+``train(cfg, run_dir)`` trains ``brax.training.agents.ppo`` on ``make_env(cfg.env, cfg.shield)``
+(the ``SafetyWrapper`` sits inside the env, so every physics step of training and of PPO's own
+evaluations is shielded), wrapped with ``tally.wrap_for_training`` so that violations are counted
+at every env step. It writes to ``run_dir``: ``config.json``, ``metrics.jsonl`` (one line per PPO
+evaluation: step, wall time, evaluation return/distance/violations, the running violation totals
+of training), ``params.msgpack`` (``checkpoint.save``) and ``summary.json``.
+
+``load_policy(run_dir)`` rebuilds the networks from the stored config and returns
+``(policy, params)`` for ``evaluate.evaluate``.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from brax.training import acme
+    from brax.training.acme import running_statistics
+    from brax.training.agents.ppo import networks as ppo_networks
+    from brax.training.agents.ppo import train as brax_ppo_train
+
+from jaxlimits.training import checkpoint, evaluate, tally
+from jaxlimits.training.config import RunConfig, from_dict
+
+
+def make_base_env(name: str):
+    """The unshielded ``ArmReach`` env for a config's ``env`` name."""
+    from jaxlimits.envs import make_panda_reach, make_planar_reach
+
+    return {"planar_reach": make_planar_reach, "panda_reach": make_panda_reach}[name]()
+
+
+def make_env(name: str, shield: str):
+    """``SafetyWrapper(ArmReach, method=shield)``: the env every algorithm and the evaluator see."""
+    from jaxlimits.envs import SafetyWrapper
+
+    return SafetyWrapper(make_base_env(name), method=shield)
+
+
+def _networks(cfg: RunConfig, obs_size, action_size: int, preprocess_observations_fn=None):
+    """PPO networks with the config's sizes (Brax's ``network_factory`` signature)."""
+    if preprocess_observations_fn is None:
+        preprocess_observations_fn = running_statistics.normalize if cfg.ppo.normalize_observations else (lambda x, y: x)
+    return ppo_networks.make_ppo_networks(obs_size, action_size, preprocess_observations_fn=preprocess_observations_fn,
+                                          policy_hidden_layer_sizes=tuple(cfg.ppo.policy_hidden),
+                                          value_hidden_layer_sizes=tuple(cfg.ppo.value_hidden))
+
+
+class _Progress:
+    """Brax PPO's ``policy_params_fn``: evaluate the current policy, log a ``metrics.jsonl`` row, draw the bar.
+
+    Called at step 0 and after every training epoch group (``num_evals`` times). The evaluation is
+    ``evaluate.Evaluator`` (deterministic policy, ``eval_episodes_during_training`` episodes, the
+    same shielded env), compiled once; its violations are counted in the row, apart from training's.
+    """
+
+    def __init__(self, cfg: RunConfig, run_dir: Path, counts: tally.Tally, env, show: bool):
+        self.cfg, self.counts, self.env, self.show = cfg, counts, env, show
+        self.file = (run_dir / "metrics.jsonl").open("w")
+        self.t0 = time.perf_counter()
+        self.rows = []
+        self.evaluator = None
+
+    def __call__(self, step, make_policy, params):
+        if self.evaluator is None:
+            policy = lambda p, obs, key, t: make_policy(p, deterministic=True)(obs, key[1])[0]  # noqa: E731
+            self.evaluator = evaluate.Evaluator(self.env, policy, episodes=self.cfg.ppo.num_eval_envs,
+                                                episode_length=self.cfg.episode_length,
+                                                action_repeat=self.cfg.ppo.action_repeat)
+        per = self.evaluator(params, seed=10_000 + len(self.rows))
+        ev = evaluate.summarize(per, self.cfg.episode_length)
+        row = {"step": int(step), "wall_s": round(time.perf_counter() - self.t0, 2)}
+        row.update({f"eval/{k}": v for k, v in ev.items()})
+        row.update({f"train/{k}": v for k, v in self.counts.as_dict().items()})
+        self.rows.append(row)
+        self.file.write(json.dumps(row) + "\n")
+        self.file.flush()
+        if self.show:
+            frac = min(step / self.cfg.num_timesteps, 1.0)
+            bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
+            viol = row["train/violations/position"] + row["train/violations/velocity"]
+            print(f"[{self.cfg.shield:>9}] [{bar}] {step:>10,d}/{self.cfg.num_timesteps:,d} steps "
+                  f"{row['wall_s']:7.1f} s | eval return {ev['return_mean']:8.2f} success {ev['success_rate']:.2f} | "
+                  f"training pos+vel violations {viol}", file=sys.stderr, flush=True)
+
+    def close(self):
+        self.file.close()
+
+
+def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
+    """Train and save; returns the summary (also written to ``run_dir/summary.json``)."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+    env = make_env(cfg.env, cfg.shield)
+    counts = tally.Tally()
+    progress = _Progress(cfg, run_dir, counts, env, show_progress)
+    p = cfg.ppo
+    t0 = time.perf_counter()
+    try:
+        _, params, _ = brax_ppo_train.train(
+            environment=env, num_timesteps=cfg.num_timesteps, episode_length=cfg.episode_length,
+            action_repeat=p.action_repeat, num_envs=p.num_envs, batch_size=p.batch_size,
+            num_minibatches=p.num_minibatches, unroll_length=p.unroll_length,
+            num_updates_per_batch=p.num_updates_per_batch, learning_rate=p.learning_rate,
+            entropy_cost=p.entropy_cost, discounting=p.discounting, reward_scaling=p.reward_scaling,
+            normalize_observations=p.normalize_observations, num_evals=p.num_evals, run_evals=False,
+            seed=cfg.seed, policy_params_fn=progress, wrap_env_fn=tally.wrap_for_training(counts),
+            network_factory=functools.partial(_networks, cfg),
+        )
+    finally:
+        progress.close()
+    wall = time.perf_counter() - t0
+    checkpoint.save(run_dir / "params.msgpack", params, meta=cfg.to_dict())
+    summary = {"config": cfg.to_dict(), "wall_s": wall, "training": counts.as_dict(),
+               "env_steps_per_s": counts.env_steps / wall, "final_eval": progress.rows[-1] if progress.rows else {}}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def load_policy(run_dir):
+    """``(cfg, policy, params)`` from a run folder; ``policy(params, obs, key, t) -> action`` (deterministic)."""
+    run_dir = Path(run_dir)
+    cfg = from_dict(checkpoint.read_meta(run_dir / "params.msgpack"))
+    env = make_env(cfg.env, cfg.shield)
+    nets = _networks(cfg, env.observation_size, env.action_size)
+    key = jax.random.PRNGKey(0)
+    obs_spec = acme.specs.Array((env.observation_size,), jnp.dtype("float32"))
+    template = (running_statistics.init_state(obs_spec), nets.policy_network.init(key), nets.value_network.init(key))
+    params = checkpoint.load(run_dir / "params.msgpack", template)
+    make_policy = ppo_networks.make_inference_fn(nets)
+
+    def policy(params, obs, key, t):
+        del t
+        return make_policy(params, deterministic=True)(obs, key[1])[0]
+
+    return cfg, policy, params

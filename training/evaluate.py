@@ -1,0 +1,183 @@
+"""Jitted batch evaluation of a policy over thousands of parallel episodes, sharded across devices.
+
+``evaluate(env, policy, params, episodes=10_000, episode_length=200)`` runs every episode to its
+full length in one jitted program: the episodes are a batch axis (``vmap``), the steps a
+``lax.scan``, and the batch is laid out over a 1-D device mesh (``jax.sharding``, axis
+``"episodes"``), so each device simulates its share and nothing but the per-episode summaries comes
+back. Episode ``i`` always uses the ``i``-th key split from ``seed``, whatever the device count, so
+results do not depend on the sharding (tested with 1 vs 2 simulated host devices,
+``XLA_FLAGS=--xla_force_host_platform_device_count=2``).
+
+Multi-host: call ``jax.distributed.initialize()`` in every process first; ``devices=None`` then
+means all global devices, the keys are built with ``jax.make_array_from_callback`` (each process
+supplies its own shards) and the per-episode results are gathered with
+``multihost_utils.process_allgather``. (Only the single-host path is tested here.)
+
+``policy(params, obs, key, t) -> action`` for one env (``obs (obs_size,)``, ``t`` the step index);
+``params`` are replicated on every device. ``scripted_policy`` gives the adversarial ones.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from jaxlimits.envs.arm import VIOLATION_KEYS
+
+SUCCESS_RADIUS = 0.05  # [m]: an episode succeeds when its final end-effector distance is below this
+SCRIPTED = ("toward_limit", "bang_bang", "random")
+
+
+def scripted_policy(kind: str, n: int):
+    """An adversarial scripted policy ``(params, obs, key, t) -> action`` (``params`` unused).
+
+    ``toward_limit``: full acceleration toward a limit, a random sign per joint and episode;
+    ``bang_bang``: full acceleration switching sign every 5-60 steps (per joint and episode);
+    ``random``: uniform in ``[-1.5, 1.5]`` (beyond the action box: what a buggy policy sends).
+    The per-episode choices are drawn from ``fold_in(key, -1)``, which the evaluator keeps fixed
+    over an episode (``key`` is the episode key folded with ``t`` only for ``random``).
+    """
+    if kind not in SCRIPTED:
+        raise ValueError(f"scripted policy kind must be one of {SCRIPTED}, got {kind!r}")
+
+    def policy(params, obs, key, t):
+        del params, obs
+        episode_key = key[0]
+        k_sign, k_period = jax.random.split(episode_key)
+        sign = jnp.where(jax.random.bernoulli(k_sign, 0.5, (n,)), 1.0, -1.0)
+        if kind == "toward_limit":
+            return sign
+        if kind == "bang_bang":
+            period = jax.random.randint(k_period, (n,), 5, 61)
+            return sign * jnp.where((t // period) % 2 == 0, 1.0, -1.0)
+        return jax.random.uniform(jax.random.fold_in(key[1], t), (n,), minval=-1.5, maxval=1.5)
+
+    return policy
+
+
+def _episode(env, policy, params, key, episode_length: int, action_repeat: int = 1):
+    """One episode of ``episode_length`` env steps, the policy acting every ``action_repeat`` of them.
+
+    Returns per-episode summaries (scalars) of return, success and violations; every env step
+    counts (not only those where the policy acts).
+    """
+    k_reset, k_episode, k_act = jax.random.split(key, 3)
+    state = env.reset(k_reset)
+
+    def body(carry, t):
+        state, acc, held = carry
+        action = jax.lax.cond(t % action_repeat == 0,
+                              lambda: policy(params, state.obs, jnp.stack([k_episode, k_act]), t // action_repeat),
+                              lambda: held)
+        state = env.step(state, action)
+        m = state.metrics
+        acc = {
+            "return": acc["return"] + state.reward,
+            "intervention": acc["intervention"] + m.get("intervention", 0.0),
+            **{f"count/{k}": acc[f"count/{k}"] + m[f"count/{k}"] for k in VIOLATION_KEYS},
+            **{f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[f"violation/{k}"]) for k in VIOLATION_KEYS},
+            "nonfinite_actions": acc["nonfinite_actions"] + m.get("nonfinite_action", 0.0),
+        }
+        return (state, acc, action), None
+
+    zero = jnp.zeros((), jnp.float32)
+    acc0 = {"return": zero, "intervention": zero, "nonfinite_actions": zero}
+    acc0.update({f"count/{k}": zero for k in VIOLATION_KEYS})
+    acc0.update({f"max/{k}": zero for k in VIOLATION_KEYS})
+    held0 = jnp.zeros((env.action_size,), jnp.float32)
+    (state, acc, _), _ = jax.lax.scan(body, (state, acc0, held0), jnp.arange(episode_length))
+    acc["final_distance"] = state.metrics["distance"]
+    acc["intervention"] = acc["intervention"] / episode_length
+    return acc
+
+
+def _global_keys(seed: int, episodes: int, sharding: NamedSharding):
+    """The ``(episodes, 2)`` key array ``split(PRNGKey(seed), episodes)``, built shard by shard."""
+    host = np.asarray(jax.random.key_data(jax.random.split(jax.random.PRNGKey(seed), episodes)))
+    return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+
+class Evaluator:
+    """A compiled batch evaluation: ``Evaluator(env, policy, ...)(params, seed)`` -> per-episode arrays.
+
+    Compiled once per instance (reuse it to evaluate many parameter sets, e.g. during training).
+    ``episodes`` is padded up to a multiple of the device count (the padding episodes use the
+    following keys and are dropped), so any count works on any mesh.
+    """
+
+    def __init__(self, env, policy, *, episodes: int, episode_length: int, action_repeat: int = 1, devices=None):
+        if episodes < 1 or episode_length < 1:
+            raise ValueError(f"episodes and episode_length must be >= 1, got {episodes}, {episode_length}")
+        self.episodes, self.episode_length = episodes, episode_length
+        self.devices = list(jax.devices() if devices is None else devices)
+        self.mesh = Mesh(np.array(self.devices), ("episodes",))
+        self.padded = -(-episodes // len(self.devices)) * len(self.devices)
+
+        def run(params, keys):
+            return jax.vmap(lambda k: _episode(env, policy, params, jax.random.wrap_key_data(k), episode_length,
+                                                 action_repeat))(keys)
+
+        self._run = jax.jit(run)
+
+    def __call__(self, params, seed: int = 0) -> dict:
+        keys = _global_keys(seed, self.padded, NamedSharding(self.mesh, PartitionSpec("episodes", None)))
+        params = jax.device_put(params, NamedSharding(self.mesh, PartitionSpec()))
+        out = self._run(params, keys)
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            out = multihost_utils.process_allgather(out, tiled=True)
+        return {k: np.asarray(v)[: self.episodes] for k, v in out.items()}
+
+
+def rollout_episodes(env, policy, params, *, episodes: int, episode_length: int, action_repeat: int = 1,
+                     seed: int = 0, devices=None):
+    """Per-episode results as NumPy arrays ``{name: (episodes,)}``, computed sharded over ``devices``."""
+    return Evaluator(env, policy, episodes=episodes, episode_length=episode_length, action_repeat=action_repeat,
+                     devices=devices)(params, seed)
+
+
+def summarize(per_episode: dict, episode_length: int, success_radius: float = SUCCESS_RADIUS) -> dict:
+    """Totals and means over episodes (host side, float64): the evaluation table's row."""
+    e = len(per_episode["return"])
+    row = {
+        "episodes": e,
+        "env_steps": e * episode_length,
+        "return_mean": float(np.mean(per_episode["return"], dtype=np.float64)),
+        "success_rate": float(np.mean(per_episode["final_distance"] < success_radius)),
+        "final_distance_mean": float(np.mean(per_episode["final_distance"], dtype=np.float64)),
+        "intervention_mean": float(np.mean(per_episode["intervention"], dtype=np.float64)),
+        "nonfinite_actions": int(np.sum(per_episode["nonfinite_actions"])),
+    }
+    for k in VIOLATION_KEYS:
+        row[f"violations/{k}"] = int(np.sum(per_episode[f"count/{k}"], dtype=np.float64))
+        row[f"max_violation/{k}"] = float(np.max(per_episode[f"max/{k}"]))
+    return row
+
+
+def evaluate(env, policy, params, *, episodes: int = 10_000, episode_length: int = 200, action_repeat: int = 1,
+             seed: int = 0, devices=None, success_radius: float = SUCCESS_RADIUS) -> dict:
+    """Evaluate ``policy`` over ``episodes`` parallel episodes; returns ``summarize``'s row plus timing."""
+    t0 = time.perf_counter()
+    per = rollout_episodes(env, policy, params, episodes=episodes, episode_length=episode_length,
+                           action_repeat=action_repeat, seed=seed, devices=devices)
+    wall = time.perf_counter() - t0
+    row = summarize(per, episode_length, success_radius)
+    row.update(wall_s=wall, env_steps_per_s=row["env_steps"] / wall, devices=len(devices or jax.devices()))
+    return row
+
+
+def format_table(rows: dict) -> str:
+    """A plain-text table, one line per shield (``rows``: name -> ``evaluate`` row)."""
+    cols = [("episodes", "{:d}"), ("return_mean", "{:.2f}"), ("success_rate", "{:.3f}"),
+            ("violations/position", "{:d}"), ("max_violation/position", "{:.3g}"),
+            ("violations/velocity", "{:d}"), ("max_violation/velocity", "{:.3g}"),
+            ("violations/torque", "{:d}"), ("intervention_mean", "{:.3g}"), ("nonfinite_actions", "{:d}")]
+    head = ["shield"] + [c.replace("violations/", "viol ").replace("max_violation/", "max ") for c, _ in cols]
+    lines = [head] + [[name] + [fmt.format(r[c]) for c, fmt in cols] for name, r in rows.items()]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
+    return "\n".join("  ".join(s.rjust(w) for s, w in zip(line, widths)) for line in lines)

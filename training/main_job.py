@@ -1,0 +1,58 @@
+"""The main job: train PPO on planar reach with and without the shield, evaluate both, compare.
+
+``run(out)`` trains one run per shield (default ``viability`` and ``none``) from the same config and
+seed, evaluates each trained policy with its own shield over ``cfg.eval_episodes`` parallel episodes
+(``evaluate.Evaluator``), and writes to ``out``: ``runs/<shield>/`` (each run's folder),
+``results.json`` (training totals and evaluation rows), ``results.md`` (the table) and
+``training_curves.png``. It prints the comparison table.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from jaxlimits.training import brax_ppo, evaluate, plots
+from jaxlimits.training.config import RunConfig
+
+
+def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool = True) -> dict:
+    out = Path(out)
+    t0 = time.perf_counter()
+    results = {"config": cfg.to_dict(), "shields": {}}
+    runs = {}
+    for shield in shields:
+        run_dir = out / "runs" / shield
+        summary = brax_ppo.train(cfg.override(shield=shield), run_dir, show_progress=show_progress)
+        runs[shield] = run_dir
+        run_cfg, policy, params = brax_ppo.load_policy(run_dir)
+        env = brax_ppo.make_env(run_cfg.env, run_cfg.shield)
+        row = evaluate.evaluate(env, policy, params, episodes=cfg.eval_episodes, episode_length=cfg.episode_length,
+                                action_repeat=cfg.ppo.action_repeat, seed=cfg.seed + 1)
+        results["shields"][shield] = {"training": summary["training"], "training_wall_s": summary["wall_s"],
+                                      "training_env_steps_per_s": summary["env_steps_per_s"], "evaluation": row}
+    results["wall_s"] = time.perf_counter() - t0
+    table = format_results(results)
+    print(table)
+    plots.plot_runs(runs, out / "training_curves.png")
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    (out / "results.md").write_text(table + "\n")
+    return results
+
+
+def format_results(results: dict) -> str:
+    """Markdown table: per shield, training violations (all env-steps) and evaluation figures."""
+    head = ("| shield | training env-steps | training pos / vel violations (max rad, rad/s) | train wall s (env-steps/s) "
+            "| eval episodes | eval success | eval return | eval pos / vel violations (max) | eval intervention rad/s² |")
+    lines = [head, "|---" * 9 + "|"]
+    for shield, r in results["shields"].items():
+        t, e = r["training"], r["evaluation"]
+        lines.append(
+            f"| {shield} | {t['env_steps']:,} | {t['violations/position']:,} / {t['violations/velocity']:,} "
+            f"({t['max_violation/position']:.3g}, {t['max_violation/velocity']:.3g}) "
+            f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {e['episodes']:,} "
+            f"| {e['success_rate']:.3f} | {e['return_mean']:.2f} "
+            f"| {e['violations/position']:,} / {e['violations/velocity']:,} "
+            f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |")
+    return "\n".join(lines)

@@ -1,0 +1,89 @@
+"""Stable-Baselines3 PPO on the Gymnasium front, violations counted from ``info["violation"]``.
+
+``train(shield, total_timesteps, out)`` trains SB3's ``PPO("MlpPolicy")`` (torch, CPU) on
+``gymnasium.make("jaxlimits/PlanarReach-v0", shield=shield)`` and writes to ``out``:
+``policy.npz`` (the policy's ``state_dict`` as arrays: no pickle, unlike SB3's ``.zip``),
+``metrics.json`` (env-steps, violation counts and maxima from every step's ``info["violation"]``,
+episode returns) and returns the model. ``load_policy_arrays`` reads ``policy.npz`` back into a
+fresh SB3 policy.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from jaxlimits.envs.arm import VIOLATION_KEYS
+
+
+def _make_env(shield: str, arm: str, max_episode_steps: int):
+    import gymnasium
+
+    import jaxlimits.envs.gym as jgym
+
+    jgym.register_envs()
+    name = {"planar": "jaxlimits/PlanarReach-v0", "panda": "jaxlimits/PandaReach-v0"}[arm]
+    return gymnasium.make(name, shield=shield, max_episode_steps=max_episode_steps)
+
+
+class _ViolationCounter:
+    """An SB3 callback body: sums ``info["violation"][k] > 0`` over every env step."""
+
+    def __init__(self):
+        self.counts = {k: 0 for k in VIOLATION_KEYS}
+        self.maxes = {k: 0.0 for k in VIOLATION_KEYS}
+        self.env_steps = 0
+        self.episode_returns = []
+
+    def update(self, infos):
+        for info in infos:
+            self.env_steps += 1
+            for k, x in info["violation"].items():
+                self.counts[k] += int(x > 0)
+                self.maxes[k] = max(self.maxes[k], float(x))
+            if "episode" in info:
+                self.episode_returns.append(float(info["episode"]["r"]))
+
+
+def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *, arm: str = "planar",
+          max_episode_steps: int = 200, seed: int = 0, n_steps: int = 512, batch_size: int = 64):
+    """Train SB3 PPO; returns ``(model, metrics)`` and writes ``out`` if given."""
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.monitor import Monitor
+
+    torch.set_num_threads(1)
+    counter = _ViolationCounter()
+
+    class Callback(BaseCallback):
+        def _on_step(self) -> bool:
+            counter.update(self.locals["infos"])
+            return True
+
+    env = Monitor(_make_env(shield, arm, max_episode_steps))
+    model = PPO("MlpPolicy", env, n_steps=n_steps, batch_size=batch_size, seed=seed, device="cpu", verbose=0,
+                policy_kwargs={"net_arch": [64, 64]})
+    model.learn(total_timesteps=total_timesteps, callback=Callback())
+    metrics = {"shield": shield, "arm": arm, "env_steps": counter.env_steps, "episode_returns": counter.episode_returns,
+               **{f"violations/{k}": v for k, v in counter.counts.items()},
+               **{f"max_violation/{k}": v for k, v in counter.maxes.items()}}
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        arrays = {k: v.detach().cpu().numpy() for k, v in model.policy.state_dict().items()}
+        np.savez(out / "policy.npz", **arrays)
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    env.close()
+    return model, metrics
+
+
+def load_policy_arrays(model, path) -> None:
+    """Load ``policy.npz`` (written by ``train``) into ``model.policy`` (same architecture); no pickle."""
+    import torch
+
+    with np.load(path, allow_pickle=False) as data:
+        state = {k: torch.from_numpy(data[k]) for k in data.files}
+    model.policy.load_state_dict(state, strict=True)
