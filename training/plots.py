@@ -7,7 +7,7 @@ from pathlib import Path
 
 PANELS = (
     ("eval/return_mean", "evaluation return (mean per episode)"),
-    ("eval/success_rate", f"evaluation success rate"),
+    ("eval/success_rate", "evaluation success rate (final distance < 5 cm)"),
     ("train/violations/position", "position violations during training (cumulative env-steps)"),
     ("train/violations/velocity", "velocity violations during training (cumulative env-steps)"),
 )
