@@ -1,17 +1,20 @@
 """Timing of the box-QP projection: clip vs dense metric vs halfspaces, against jaxopt in the same run.
 
     .venv/bin/python benchmarks/bench_qp.py            # batches 1, 64, 4096, 65536
-    .venv/bin/python benchmarks/bench_qp.py --quick    # batch 4096 only, fewer repeats (< 30 s)
+    .venv/bin/python benchmarks/bench_qp.py --quick    # batch 4096 only, fewer repeats (< 1 min)
 
 Problems: n = 7 joints, random SPD metrics (condition number 1e2), x_des ~ 2 N(0, 1), box [-1, 1],
-one random halfspace for the halfspace rows. float32 (JAX's default, what RL runs in). Every
-function is jitted; times are the median of repeated calls after compilation (block_until_ready).
-"fwd+bwd" is ``jax.grad`` of ``sum(x * v)`` w.r.t. ``x_des`` (our custom JVP; jaxopt's implicit
-differentiation). Accuracy: the largest error of the float32 result vs our float64 solution (itself
-checked against an exact enumeration reference in ``tests/test_qp.py``); BoxCDQP / BoxOSQP run at
-tolerances chosen to reach about that accuracy, and their error is printed next to their time.
-qpax is not measured (not installed in this environment). Prints a table, then one ``JSON {...}``
-line with every figure and the ratios.
+one random halfspace for the halfspace rows. float32 (JAX's default, what RL runs in), on the CPU
+with the project's XLA flags (``xla_cpu_use_fusion_emitters=false``, which MJX needs). Every
+function is jitted; times are the median and the minimum of repeated calls after compilation
+(block_until_ready); on a shared machine the minimum is the steadier figure, and every ratio is
+between two functions timed in the same run. "fwd+bwd" is ``jax.grad`` of ``sum(x * v)`` w.r.t.
+``x_des`` (our implicit custom JVP; jaxopt's implicit differentiation). Accuracy: the largest
+error of the float32 result vs our float64 solution (itself checked against an exact enumeration
+reference in ``tests/test_qp.py``); BoxCDQP / BoxOSQP run at tolerances chosen to reach about the
+same accuracy, and their error is printed next to their time. qpax is not measured (not
+installed in this environment). Prints a table, then one ``JSON {...}`` line with every figure
+and the ratios.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ def problems(batch, seed=0):
 
 
 def timeit(fn, *args, reps):
+    """``(median, minimum, output)`` of ``reps`` timed calls after a warm-up call."""
     out = fn(*args)
     jax.block_until_ready(out)
     times = []
@@ -56,7 +60,7 @@ def timeit(fn, *args, reps):
         t = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t)
-    return float(np.median(times)), out
+    return float(np.median(times)), float(np.min(times)), out
 
 
 def methods(lo, hi):
@@ -130,36 +134,47 @@ def main():
         for name in names:
             if batch >= 4096 and name.startswith("BoxOSQP"):
                 continue  # ~1 s per 64 problems on a CPU: ~1 min per call at 4096 (skipped)
-            reps = 3 if (args.quick or batch >= 4096) else 20
+            reps = 5 if (args.quick or batch >= 4096) else 30
             if name.startswith("Box") and batch >= 4096:
                 reps = 2
+            if name in ("clip", "dense", "halfspace"):
+                reps *= 4  # cheap: more samples, a steadier median
             fwd = jax.jit(fns[name])
-            t_f, x = timeit(fwd, *a32, reps=reps)
+            t_f, m_f, x = timeit(fwd, *a32, reps=reps)
             err = float(np.max(np.abs(np.asarray(x, np.float64) - exact[REFERENCE_OF[name]])))
             bwd = jax.jit(jax.grad(lambda xd_, *rest, f=fns[name]: jnp.sum(f(xd_, *rest) * v)))
-            t_b, _ = timeit(bwd, *a32, reps=reps) if not (args.quick and name.startswith("Box")) else (float("nan"), None)
-            results[f"{name}@{batch}"] = {"fwd_s": t_f, "fwd_bwd_s": t_b, "max_err": err}
-            rows.append((batch, name, t_f, t_b, err))
-            print(f"{batch:>6} {name:<18} fwd {t_f * 1e3:10.3f} ms   fwd+bwd {t_b * 1e3:10.3f} ms   max err {err:.2e}", flush=True)
+            t_b, m_b, _ = timeit(bwd, *a32, reps=reps)
+            results[f"{name}@{batch}"] = {"fwd_s": t_f, "fwd_bwd_s": t_b, "fwd_min_s": m_f, "fwd_bwd_min_s": m_b,
+                                          "max_err": err}
+            rows.append((batch, name, t_f, t_b, m_f, m_b, err))
+            print(f"{batch:>6} {name:<18} fwd {t_f * 1e3:10.3f} ms (min {m_f * 1e3:9.3f})   fwd+bwd {t_b * 1e3:10.3f} ms "
+                  f"(min {m_b * 1e3:9.3f})   max err {err:.2e}", flush=True)
 
     ratios = {}
     for batch in batches:
-        r = lambda a, b, k: results[f"{a}@{batch}"][k] / results[f"{b}@{batch}"][k]  # noqa: E731
-        ratios[f"dense_over_clip_fwd@{batch}"] = r("dense", "clip", "fwd_s")
-        ratios[f"dense_over_clip_fwd_bwd@{batch}"] = r("dense", "clip", "fwd_bwd_s")
-        ratios[f"halfspace_over_clip_fwd@{batch}"] = r("halfspace", "clip", "fwd_s")
-        ratios[f"BoxCDQP_over_dense_fwd@{batch}"] = r("BoxCDQP", "dense", "fwd_s")
-        ratios[f"BoxCDQP_over_dense_fwd_bwd@{batch}"] = r("BoxCDQP", "dense", "fwd_bwd_s")
-        if f"BoxOSQP@{batch}" in results:
-            ratios[f"BoxOSQP_over_dense_fwd@{batch}"] = r("BoxOSQP", "dense", "fwd_s")
-            ratios[f"BoxOSQP_halfspace_over_halfspace_fwd@{batch}"] = r("BoxOSQP_halfspace", "halfspace", "fwd_s")
+        for stat in ("median", "min"):
+            suf = "" if stat == "median" else "_min"
+
+            def r(a, b, k, batch=batch, suf=suf):
+                return results[f"{a}@{batch}"][k + suf + "_s"] / results[f"{b}@{batch}"][k + suf + "_s"]
+
+            tag = "" if stat == "median" else "min_"
+            ratios[f"{tag}dense_over_clip_fwd@{batch}"] = r("dense", "clip", "fwd")
+            ratios[f"{tag}dense_over_clip_fwd_bwd@{batch}"] = r("dense", "clip", "fwd_bwd")
+            ratios[f"{tag}halfspace_over_clip_fwd@{batch}"] = r("halfspace", "clip", "fwd")
+            ratios[f"{tag}halfspace_over_clip_fwd_bwd@{batch}"] = r("halfspace", "clip", "fwd_bwd")
+            ratios[f"{tag}BoxCDQP_over_dense_fwd@{batch}"] = r("BoxCDQP", "dense", "fwd")
+            ratios[f"{tag}BoxCDQP_over_dense_fwd_bwd@{batch}"] = r("BoxCDQP", "dense", "fwd_bwd")
+            if f"BoxOSQP@{batch}" in results:
+                ratios[f"{tag}BoxOSQP_over_dense_fwd@{batch}"] = r("BoxOSQP", "dense", "fwd")
+                ratios[f"{tag}BoxOSQP_halfspace_over_halfspace_fwd@{batch}"] = r("BoxOSQP_halfspace", "halfspace", "fwd")
 
     print()
-    print(f"{'batch':>6} {'method':<18} {'fwd [ms]':>12} {'fwd+bwd [ms]':>14} {'max err':>10}")
-    for batch, name, t_f, t_b, err in rows:
-        print(f"{batch:>6} {name:<18} {t_f * 1e3:12.3f} {t_b * 1e3:14.3f} {err:10.2e}")
+    print(f"{'batch':>6} {'method':<18} {'fwd [ms]':>10} {'(min)':>9} {'fwd+bwd [ms]':>13} {'(min)':>9} {'max err':>10}")
+    for batch, name, t_f, t_b, m_f, m_b, err in rows:
+        print(f"{batch:>6} {name:<18} {t_f * 1e3:10.3f} {m_f * 1e3:9.3f} {t_b * 1e3:13.3f} {m_b * 1e3:9.3f} {err:10.2e}")
     for k, val in ratios.items():
-        print(f"{k:<45} {val:10.2f}")
+        print(f"{k:<50} {val:10.2f}")
     summary = {"n": N, "dtype": "float32", "device": jax.devices()[0].platform, "quick": args.quick,
                "results": results, "ratios": ratios}
     print("JSON " + json.dumps(summary, allow_nan=True))

@@ -92,3 +92,49 @@ def solve(x_des, lower, upper, W, G=None, h=None, tol=1e-9):
         raise RuntimeError("no valid active set (infeasible problem?)")
     best = np.flatnonzero(valid)[np.argmin(f[valid])]
     return np.clip(x[best], lower, upper)
+
+
+# ------------------------------------------------------------------------------------------------
+# infeasible halfspaces: an independent (SciPy) reference of the least-violation definition
+
+
+def least_violation(lower, upper, G, h):
+    """``(r*, x)``: the least violation ``r* = max(G x - h, 0)`` minimising ``||r||`` over the box.
+
+    SciPy's bounded-variable least squares on ``min ||G x - t - h||``, ``lower <= x <= upper``,
+    ``t <= 0`` (at the optimum the residual is ``max(G x - h, 0)``).
+    """
+    from scipy.optimize import lsq_linear
+
+    G, h = np.asarray(G, np.float64), np.asarray(h, np.float64)
+    m, n = G.shape
+    A = np.concatenate([G, -np.eye(m)], axis=1)
+    lb = np.concatenate([np.broadcast_to(lower, (n,)), np.full(m, -np.inf)])
+    ub = np.concatenate([np.broadcast_to(upper, (n,)), np.zeros(m)])
+    z = lsq_linear(A, h, bounds=(lb, ub), method="bvls", tol=1e-15).x
+    return np.maximum(A @ z - h, 0.0), z[:n]
+
+
+def rows_feasible(lower, upper, G, h):
+    """Whether some box point meets every row (SciPy's LP, phase 1)."""
+    from scipy.optimize import linprog
+
+    G = np.asarray(G, np.float64)
+    n = G.shape[1]
+    res = linprog(np.zeros(n), A_ub=G, b_ub=h, bounds=list(zip(np.broadcast_to(lower, (n,)), np.broadcast_to(upper, (n,)))),
+                  method="highs")
+    return res.status == 0
+
+
+def solve_least_violation(x_des, lower, upper, W, G, h, slack=1e-11):
+    """The documented answer for rows that cannot all hold: ``(x, r*)``.
+
+    ``r*`` from ``least_violation`` (SciPy), then the enumeration ``solve`` on the rows relaxed to
+    ``h + r* + slack`` (the slack keeps the thin set of least violation from making every
+    active-set system with two of its rows singular; it moves ``x`` by ``O(slack)``).
+    """
+    G = np.asarray(G, np.float64)
+    n = G.shape[1]
+    lower, upper = np.broadcast_to(lower, (n,)), np.broadcast_to(upper, (n,))
+    r, _ = least_violation(lower, upper, G, h)
+    return solve(x_des, lower, upper, W, G, np.asarray(h, np.float64) + r + slack * (1.0 + np.abs(h))), r

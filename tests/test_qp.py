@@ -130,8 +130,8 @@ def test_dense_metric_matches_reference_float32():
 
 
 def test_box_holds_exactly_even_when_stopped_early(dtype):
-    rng = np.random.default_rng(3)
-    xd, lo, hi, W = (a.astype(dtype) for a in _problems(rng, 256, 7, 1e4))
+    rng = np.random.default_rng(3)  # batch sizes of the reference tests: max_iter is traced, no recompilation
+    xd, lo, hi, W = (a.astype(dtype) for a in _problems(rng, 400 if dtype == np.float32 else 300, 7, 1e4))
     res = jl.solve_box_qp(xd, lo, hi, W, max_iter=1)
     _assert_in_box(res.x, lo, hi)
     assert not bool(jnp.all(res.converged))
@@ -140,8 +140,37 @@ def test_box_holds_exactly_even_when_stopped_early(dtype):
 # ------------------------------------------------------------------------------------- halfspaces
 
 
-@pytest.mark.parametrize("n, m, batch", [(5, 1, 600), (4, 2, 400), (7, 1, 80)])
+def test_dense_metric_large_n_satisfies_kkt(x64):
+    """n above the unrolled size (array form, LAPACK): the KKT conditions, checked in NumPy."""
+    rng = np.random.default_rng(14)
+    xd, lo, hi, W = _problems(rng, 64, 14, 1e3)
+    res = jl.solve_box_qp(xd, lo, hi, W)
+    assert bool(jnp.all(res.converged))
+    _assert_in_box(res.x, lo, hi)
+    x = np.asarray(res.x)
+    g = np.einsum("bij,bj->bi", W, x - xd)
+    tol = 1e-9 * np.max(np.abs(W), axis=(1, 2))[:, None] * (1.0 + np.max(np.abs(xd), axis=1))[:, None]
+    at_lo, at_hi = x <= lo, x >= hi
+    assert np.all(np.where(at_lo, g >= -tol, np.where(at_hi, g <= tol, np.abs(g) <= tol)))
+    assert np.all(np.isfinite(np.asarray(jax.grad(lambda a: jnp.sum(jl.project_box(a, lo, hi, W) ** 2))(xd))))
+
+
+def _contradicting_rows(rng, batch, n, m):
+    """Rows each satisfiable in the box (some barely) but, with the second against the first, mostly not together."""
+    xd, lo, hi, W = _problems(rng, batch, n, 1e2)
+    G = rng.normal(size=(batch, m, n))
+    G[:, 1] = -G[:, 0] * rng.uniform(0.5, 2.0, size=(batch, 1)) + 0.3 * rng.normal(size=(batch, n))
+    gmin = np.sum(np.minimum(G * lo[:, None], G * hi[:, None]), axis=-1)
+    spread = np.sum(np.abs(G) * (hi - lo)[:, None], axis=-1)
+    h = gmin + rng.uniform(0.0, 0.3, size=(batch, m)) * spread
+    h[: batch // 8, -1] = gmin[: batch // 8, -1] - 0.1  # and some rows the box alone rules out
+    return xd, lo, hi, W, G, h
+
+
+@pytest.mark.parametrize("n, m, batch", [(5, 1, 600), (4, 2, 400), (7, 1, 80), (4, 3, 120)])
 def test_halfspaces_match_reference_float64(x64, n, m, batch):
+    """Feasible rows vs the enumeration; rows that cannot all hold (m >= 2: random rows, and
+    contradicting pairs) vs SciPy: least Euclidean violation over the box, then the metric."""
     rng = np.random.default_rng(10 * n + m)
     xd, lo, hi, W = _problems(rng, batch, n, 1e3)
     G = rng.normal(size=(batch, m, n))
@@ -149,22 +178,32 @@ def test_halfspaces_match_reference_float64(x64, n, m, batch):
     if m == 1:  # a quarter of the single rows cannot be met inside the box at all
         gmin = np.sum(np.minimum(G * lo[:, None], G * hi[:, None]), axis=-1)
         h = np.where(np.arange(batch)[:, None] % 4 == 0, gmin - rng.uniform(0.01, 1.0, size=(batch, m)), h)
+    else:  # the second half: rows each (mostly) satisfiable, contradicting each other
+        k = batch // 2
+        xd[k:], lo[k:], hi[k:], W[k:], G[k:], h[k:] = _contradicting_rows(rng, batch - k, n, m)
     res = jl.solve_box_qp(xd, lo, hi, W, G=G, h=h)
     _assert_in_box(res.x, lo, hi)
+    assert bool(jnp.all(res.converged))
     gmin = np.sum(np.minimum(G * lo[:, None], G * hi[:, None]), axis=-1)
-    np.testing.assert_array_equal(res.infeasible, np.any(gmin > h, axis=-1))
     if m == 1:
-        assert bool(jnp.all(res.converged))
+        np.testing.assert_array_equal(res.infeasible, gmin[:, 0] > h[:, 0])
         # least violation: nothing in the box does better than the returned point
         np.testing.assert_allclose(res.violation, np.maximum(gmin[:, 0] - h[:, 0], 0.0), atol=1e-12)
         assert _max_error(res, xd, lo, hi, W, G, h) <= 1e-8
-    else:  # jointly infeasible pairs are flagged by converged=False (documented limit)
-        feasible = ~np.asarray(res.infeasible)
-        assert np.asarray(res.converged)[feasible].mean() > 0.9
-        ok = np.asarray(res.converged) & feasible
-        idx = np.flatnonzero(ok)
+    else:  # rows may contradict each other (or one alone the box): an LP decides feasibility
+        feasible = np.array([ref.rows_feasible(lo[i], hi[i], G[i], h[i]) for i in range(batch)])
+        assert 0.1 < feasible.mean() < 0.9
+        np.testing.assert_array_equal(res.infeasible, ~feasible)
+        assert float(np.max(np.asarray(res.violation)[feasible])) <= 1e-12
+        idx = np.flatnonzero(feasible)
         sub = jax.tree.map(lambda a: a[idx], res)
         assert _max_error(sub, xd[idx], lo[idx], hi[idx], W[idx], G[idx], h[idx]) <= 1e-8
+        x = np.asarray(res.x)
+        for i in np.flatnonzero(~feasible):
+            xr, r = ref.solve_least_violation(xd[i], lo[i], hi[i], W[i], G[i], h[i])
+            np.testing.assert_allclose(np.maximum(G[i] @ x[i] - h[i], 0.0), r, atol=1e-9)
+            np.testing.assert_allclose(res.violation[i], np.max(r), atol=1e-9)
+            assert np.max(np.abs(x[i] - xr)) <= 1e-6 * (1.0 + np.max(np.abs(xr))), i
 
 
 def test_halfspaces_float32():
@@ -180,6 +219,23 @@ def test_halfspaces_float32():
     sub = jax.tree.map(lambda a: a[ok], res)
     a64 = [a.astype(np.float64)[ok] for a in args]
     assert _max_error(sub, *a64) <= 1e-4
+
+
+def test_contradicting_rows_float32_and_gradients():
+    rng = np.random.default_rng(8)
+    xd, lo, hi, W, G, h = (a.astype(np.float32) for a in _contradicting_rows(rng, 64, 5, 2))
+
+    def loss(x, hh):  # one compiled program for the values and the gradients
+        res = jl.solve_box_qp(x, lo, hi, W, G=G, h=hh)
+        return jnp.sum(res.x ** 2), res
+
+    (_, res), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(xd, h)
+    _assert_in_box(res.x, lo, hi)
+    assert float(jnp.mean(res.converged)) >= 0.95
+    feasible = np.array([ref.rows_feasible(lo[i], hi[i], G[i], h[i]) for i in range(len(xd))])
+    assert np.mean(np.asarray(res.infeasible) == ~feasible) >= 0.95  # float32 may call a near-tie either way
+    for g in grads:
+        assert np.all(np.isfinite(np.asarray(g)))
 
 
 # ------------------------------------------------------------------------------------- derivatives
@@ -223,6 +279,25 @@ def test_implicit_gradients_match_finite_differences(x64, m):
             return jl.project_box(x, a, b, w, G=gh[0], h=gh[1]) if gh else jl.project_box(x, a, b, w)
 
         check_grads(f, args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-5)
+
+
+def test_implicit_gradients_through_the_least_violation(x64):
+    """Contradicting rows: the derivative includes that of the least violation ``r*`` (the split fixed)."""
+    rng = np.random.default_rng(3)
+    xd, lo, hi, W, G, h = _contradicting_rows(rng, 16, 4, 2)
+    checked = 0
+    for i in range(16):
+        args = (xd[i], lo[i], hi[i], W[i], G[i], h[i])
+        res = jl.solve_box_qp(*args[:4], G=G[i], h=h[i])
+        if not bool(res.infeasible) or checked == 3:
+            continue
+
+        def f(x, a, b, w, g, hh):
+            return jl.project_box(x, a, b, 0.5 * (w + w.T), G=g, h=hh)
+
+        check_grads(f, args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-5)
+        checked += 1
+    assert checked == 3
 
 
 def test_gradients_are_finite_at_ties_and_degenerate_problems(dtype):

@@ -97,7 +97,7 @@ def check_inputs(x_des, lower, upper, metric, G, h):
                         "project_box: metric must be symmetric positive definite, got smallest eigenvalue "
                         f"{lam_min[bad].ravel()[:5].tolist()} (largest {np.max(eig[..., -1]):.3g})"
                     )
-            W = 0.5 * (W + jnp.swapaxes(W, -1, -2))
+            # (symmetrised by the solver, in the layout it uses: one pass over W, not two)
         else:
             raise ValueError(f"project_box: metric must be None, (n,) or (..., n, n), got shape {W.shape}")
 
