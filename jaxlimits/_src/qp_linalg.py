@@ -61,22 +61,9 @@ def chol_apply(L, b):
     """Solve with a factor from ``chol_factor``; ``b`` of shape ``(n,)`` or ``(n, k)``."""
     if not isinstance(L, list):
         return jax.scipy.linalg.cho_solve((L, True), b)
-    n = len(L)
-    if n == 0:
+    if len(L) == 0:
         return b
-    y = [None] * n
-    for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t = t - L[i][k] * y[k]
-        y[i] = t / L[i][i]
-    x = [None] * n
-    for i in reversed(range(n)):
-        t = y[i]
-        for k in range(i + 1, n):
-            t = t - L[k][i] * x[k]
-        x[i] = t / L[i][i]
-    return jnp.stack(x)
+    return jnp.stack(rchol_solve(L, b))
 
 
 # --------------------------------------------------------------------------------------------
