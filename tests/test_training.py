@@ -35,12 +35,20 @@ def test_shipped_configs_load_and_validate():
     ({"colour": "red"}, "colour"),
     ({"ppo": {"num_envs": 3}}, "num_envs"),
     ({"episode_length": 201}, "action_repeat"),
+    ({"algo": "sac"}, "algo"),
+    ({"action_mode": "torque"}, "action_mode"),
+    ({"ik_observation": "yes"}, "ik_observation"),
+    ({"precision_reward": -1.0}, "precision_reward"),
+    ({"apg": {"horizon_length": 0}}, "apg.horizon_length"),
+    ({"apg": {"normalize_observations": 1}}, "apg.normalize_observations"),
+    ({"apg": {"policy_hidden": []}}, "apg.policy_hidden"),
+    ({"apg": {"horizon_length": 9, "action_repeat": 2}}, "apg.action_repeat"),
 ])
 def test_bad_config_raises_with_the_field(bad, field):
     d = config.load("tiny").to_dict()
-    ppo = dict(d["ppo"], **bad.pop("ppo", {}))
+    for section in ("ppo", "apg"):
+        d[section] = dict(d[section], **bad.pop(section, {}))
     d.update(bad)
-    d["ppo"] = ppo
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         config.from_dict(d)
 
@@ -193,16 +201,37 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
         assert again[k] == pytest.approx(vi["evaluation"][k], rel=1e-6), k
 
 
-def test_sb3_ppo_runs_on_the_gymnasium_env(tmp_path):
-    from jaxlimits.training import sb3_ppo
+def test_apg_trains_through_the_shield_and_reloads(tmp_path):
+    """Brax APG (gradients through MJX and the shield) on a tiny budget: counted, zero violations, reloadable."""
+    from jaxlimits.training import algos, brax_apg
 
-    model, metrics = sb3_ppo.train("viability", total_timesteps=256, out=tmp_path, n_steps=128, batch_size=64,
-                                   max_episode_steps=50)
-    assert metrics["env_steps"] >= 256
+    cfg = config.load("planar_reach_apg").override(num_timesteps=640, episode_length=20, eval_episodes=8)
+    cfg = config.from_dict({**cfg.to_dict(), "apg": {**cfg.to_dict()["apg"], "num_envs": 8, "horizon_length": 8,
+                                                     "num_evals": 3, "num_eval_envs": 8, "policy_hidden": [16]}})
+    summary = algos.train(cfg, tmp_path / "apg", show_progress=False)
+    t = summary["training"]
+    assert t["env_steps"] >= brax_apg.policy_updates(cfg) * 8 * 8
+    assert t["violations/position"] == 0 and t["violations/velocity"] == 0 and t["nonfinite_actions"] == 0
+    rows = [json.loads(x) for x in (tmp_path / "apg" / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 3 and np.isfinite(rows[-1]["eval/episode_reward"])
+    cfg2, policy, params = algos.load_policy(tmp_path / "apg")
+    assert cfg2 == cfg and all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(params))
+    env = brax_apg.env_from_config(cfg2)
+    again = evaluate.evaluate(env, policy, params, episodes=8, episode_length=20, seed=10_000)
+    assert again["return_mean"] == pytest.approx(summary["final_eval"]["return_mean"], rel=1e-5)
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_sb3_runs_on_the_gymnasium_env(tmp_path, algo):
+    from jaxlimits.training import sb3
+
+    model, metrics = sb3.train("viability", total_timesteps=256, out=tmp_path, algo=algo, n_steps=128, batch_size=64,
+                               learning_starts=64, max_episode_steps=50)
+    assert metrics["env_steps"] >= 256 and metrics["algo"] == algo
     assert metrics["violations/position"] == 0 and metrics["violations/velocity"] == 0
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}
     for p in model.policy.parameters():
         p.data.zero_()
-    sb3_ppo.load_policy_arrays(model, tmp_path / "policy.npz")
+    sb3.load_policy_arrays(model, tmp_path / "policy.npz")
     for k, v in model.policy.state_dict().items():
         assert bool((v == before[k]).all()), k

@@ -34,18 +34,26 @@ from jaxlimits.training import checkpoint, evaluate, tally
 from jaxlimits.training.config import RunConfig, from_dict
 
 
-def make_base_env(name: str):
-    """The unshielded ``ArmReach`` env for a config's ``env`` name."""
+def make_base_env(name: str, **kwargs):
+    """The unshielded ``ArmReach`` env for a config's ``env`` name (``kwargs`` go to ``ArmReach``)."""
     from jaxlimits.envs import make_panda_reach, make_planar_reach
 
-    return {"planar_reach": make_planar_reach, "panda_reach": make_panda_reach}[name]()
+    return {"planar_reach": make_planar_reach, "panda_reach": make_panda_reach}[name](**kwargs)
 
 
-def make_env(name: str, shield: str):
-    """``SafetyWrapper(ArmReach, method=shield)``: the env every algorithm and the evaluator see."""
+def make_env(name: str, shield: str, action_mode: str = "acceleration", **kwargs):
+    """``SafetyWrapper(ArmReach(**kwargs), method=shield)`` with the policy's actions meaning
+    ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm and the evaluator see."""
     from jaxlimits.envs import SafetyWrapper
+    from jaxlimits.envs.actions import with_action_mode
 
-    return SafetyWrapper(make_base_env(name), method=shield)
+    return with_action_mode(SafetyWrapper(make_base_env(name, **kwargs), method=shield), action_mode)
+
+
+def env_from_config(cfg: RunConfig):
+    """``make_env`` with the config's env, shield, action mode, observation and reward."""
+    return make_env(cfg.env, cfg.shield, cfg.action_mode, ik_observation=cfg.ik_observation,
+                    precision_reward=cfg.precision_reward)
 
 
 def _networks(cfg: RunConfig, obs_size, action_size: int, preprocess_observations_fn=None):
@@ -55,6 +63,18 @@ def _networks(cfg: RunConfig, obs_size, action_size: int, preprocess_observation
     return ppo_networks.make_ppo_networks(obs_size, action_size, preprocess_observations_fn=preprocess_observations_fn,
                                           policy_hidden_layer_sizes=tuple(cfg.ppo.policy_hidden),
                                           value_hidden_layer_sizes=tuple(cfg.ppo.value_hidden))
+
+
+def total_env_steps(cfg: RunConfig) -> int:
+    """The env steps Brax PPO will train for: ``num_timesteps`` rounded up to whole training epochs.
+
+    (``brax.training.agents.ppo.train``: ``num_evals - 1`` epochs of ``ceil(num_timesteps /
+    ((num_evals - 1) * batch_size * unroll_length * num_minibatches * action_repeat))`` steps.)
+    """
+    p = cfg.ppo
+    per_step = p.batch_size * p.unroll_length * p.num_minibatches * p.action_repeat
+    epochs = max(p.num_evals - 1, 1)
+    return -(-cfg.num_timesteps // (epochs * per_step)) * epochs * per_step
 
 
 class _Progress:
@@ -75,9 +95,9 @@ class _Progress:
     def __call__(self, step, make_policy, params):
         if self.evaluator is None:
             policy = lambda p, obs, key, t: make_policy(p, deterministic=True)(obs, key[1])[0]  # noqa: E731
-            self.evaluator = evaluate.Evaluator(self.env, policy, episodes=self.cfg.ppo.num_eval_envs,
+            self.evaluator = evaluate.Evaluator(self.env, policy, episodes=self.cfg.num_eval_envs,
                                                 episode_length=self.cfg.episode_length,
-                                                action_repeat=self.cfg.ppo.action_repeat)
+                                                action_repeat=self.cfg.action_repeat)
         per = self.evaluator(params, seed=10_000 + len(self.rows))
         ev = evaluate.summarize(per, self.cfg.episode_length)
         row = {"step": int(step), "wall_s": round(time.perf_counter() - self.t0, 2)}
@@ -103,7 +123,7 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-    env = make_env(cfg.env, cfg.shield)
+    env = env_from_config(cfg)
     counts = tally.Tally()
     progress = _Progress(cfg, run_dir, counts, env, show_progress)
     p = cfg.ppo
@@ -133,7 +153,7 @@ def load_policy(run_dir):
     """``(cfg, policy, params)`` from a run folder; ``policy(params, obs, key, t) -> action`` (deterministic)."""
     run_dir = Path(run_dir)
     cfg = from_dict(checkpoint.read_meta(run_dir / "params.msgpack"))
-    env = make_env(cfg.env, cfg.shield)
+    env = env_from_config(cfg)
     nets = _networks(cfg, env.observation_size, env.action_size)
     key = jax.random.PRNGKey(0)
     obs_spec = acme.specs.Array((env.observation_size,), jnp.dtype("float32"))

@@ -18,9 +18,10 @@ from jaxlimits._xla_flags import set_cpu_xla_flags
 
 
 def _add_run_flags(p, default_out):
-    p.add_argument("--config", default="planar_reach_ppo", help="config name in training/configs/ or a JSON path")
+    p.add_argument("--config", help="config name in training/configs/ or a JSON path "
+                   "(default: <env>_<algo>, e.g. planar_reach_ppo)")
     p.add_argument("--env", choices=("planar_reach", "panda_reach"), help="override the config's env")
-    p.add_argument("--algo", choices=("ppo",), help="override the config's algorithm")
+    p.add_argument("--algo", choices=("ppo", "apg"), help="override the config's algorithm")
     p.add_argument("--steps", type=int, help="override num_timesteps")
     p.add_argument("--seed", type=int, help="override the seed")
     p.add_argument("--episodes", type=int, help="override eval_episodes")
@@ -31,7 +32,8 @@ def _add_run_flags(p, default_out):
 def _config(args, **extra):
     from jaxlimits.training import config
 
-    cfg = config.load(args.config)
+    name = args.config or f"{args.env or 'planar_reach'}_{args.algo or 'ppo'}"
+    cfg = config.load(name)
     return cfg.override(env=args.env, algo=args.algo, num_timesteps=args.steps, seed=args.seed,
                         eval_episodes=args.episodes, **extra)
 
@@ -77,11 +79,11 @@ def main(argv=None) -> int:
         main_job.run(args.out, _config(args), shields=shields, show_progress=not args.no_progress)
         print(f"wrote {args.out}/results.json, results.md, training_curves.png and runs/")
     elif args.command == "train":
-        from jaxlimits.training import brax_ppo
+        from jaxlimits.training import algos
 
         cfg = _config(args, shield=args.shield)
         out = args.out or f"runs/{cfg.env}_{cfg.algo}_{cfg.shield}_s{cfg.seed}"
-        summary = brax_ppo.train(cfg, out, show_progress=not args.no_progress)
+        summary = algos.train(cfg, out, show_progress=not args.no_progress)
         print(json.dumps({k: summary[k] for k in ("training", "wall_s", "env_steps_per_s")}, indent=2))
         print(f"wrote {out}/")
     elif args.command == "evaluate":
@@ -90,16 +92,16 @@ def main(argv=None) -> int:
 
 
 def _evaluate(args, parser):
-    from jaxlimits.training import brax_ppo, evaluate
+    from jaxlimits.training import algos, brax_ppo, evaluate
 
     if bool(args.run) == bool(args.scripted):
         parser.error("evaluate needs exactly one of --run DIR or --scripted KIND")
     rows = {}
     if args.run:
-        cfg, policy, params = brax_ppo.load_policy(args.run)
-        env = brax_ppo.make_env(cfg.env, cfg.shield)
+        cfg, policy, params = algos.load_policy(args.run)
+        env = brax_ppo.env_from_config(cfg)
         rows[cfg.shield] = evaluate.evaluate(env, policy, params, episodes=args.episodes,
-                                             episode_length=cfg.episode_length, action_repeat=cfg.ppo.action_repeat,
+                                             episode_length=cfg.episode_length, action_repeat=cfg.action_repeat,
                                              seed=args.seed)
     else:
         for shield in args.shield.split(","):

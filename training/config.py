@@ -12,8 +12,9 @@ from pathlib import Path
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ENVS = ("planar_reach", "panda_reach")
-ALGOS = ("ppo",)
+ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
+ACTION_MODES = ("acceleration", "velocity")  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
 
 
 @dataclass(frozen=True)
@@ -38,20 +39,56 @@ class PPOConfig:
 
 
 @dataclass(frozen=True)
+class APGConfig:
+    """Brax APG hyperparameters (names as in ``brax.training.agents.apg.train.train``).
+
+    Each policy update differentiates the mean reward of ``horizon_length`` env steps of
+    ``num_envs`` envs through the simulator *and the shield* (the projection's derivative);
+    ``num_timesteps / (num_envs * horizon_length)`` updates are made.
+    """
+
+    num_envs: int = 64
+    horizon_length: int = 32
+    learning_rate: float = 1e-3
+    schedule_decay: float = 0.999
+    max_gradient_norm: float = 1e9
+    action_repeat: int = 1
+    normalize_observations: bool = True
+    num_evals: int = 11
+    num_eval_envs: int = 128
+    policy_hidden: tuple = (64, 64)
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """One training run."""
 
     env: str = "planar_reach"
     algo: str = "ppo"
     shield: str = "viability"
+    action_mode: str = "acceleration"
+    ik_observation: bool = False
+    precision_reward: float = 0.0
     num_timesteps: int = 5_000_000
     episode_length: int = 200
     seed: int = 0
     eval_episodes: int = 10_000
     ppo: PPOConfig = field(default_factory=PPOConfig)
+    apg: APGConfig = field(default_factory=APGConfig)
+
+    @property
+    def action_repeat(self) -> int:
+        """The action repeat of the configured algorithm."""
+        return getattr(self, self.algo).action_repeat
+
+    @property
+    def num_eval_envs(self) -> int:
+        """Episodes of the evaluations made during training."""
+        return getattr(self, self.algo).num_eval_envs
 
     def __post_init__(self):
-        checks = [("env", self.env, ENVS), ("algo", self.algo, ALGOS), ("shield", self.shield, SHIELDS)]
+        checks = [("env", self.env, ENVS), ("algo", self.algo, ALGOS), ("shield", self.shield, SHIELDS),
+                  ("action_mode", self.action_mode, ACTION_MODES)]
         for name, value, allowed in checks:
             if value not in allowed:
                 raise ValueError(f"config field {name!r} must be one of {allowed}, got {value!r}")
@@ -59,24 +96,30 @@ class RunConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"config field {name!r} must be a positive integer, got {value!r}")
+        if not (isinstance(self.precision_reward, (int, float)) and self.precision_reward >= 0):
+            raise ValueError(f"config field 'precision_reward' must be a number >= 0, got {self.precision_reward!r}")
+        if not isinstance(self.ik_observation, bool):
+            raise ValueError(f"config field 'ik_observation' must be true or false, got {self.ik_observation!r}")
+        for section in ("ppo", "apg"):
+            _check_section(section, getattr(self, section))
         p = self.ppo
-        for f in fields(PPOConfig):
-            value = getattr(p, f.name)
-            if f.type in (int, "int") and (not isinstance(value, int) or value < 1):
-                raise ValueError(f"config field 'ppo.{f.name}' must be a positive integer, got {value!r}")
-            if f.type in (float, "float") and not (isinstance(value, (int, float)) and value >= 0):
-                raise ValueError(f"config field 'ppo.{f.name}' must be a non-negative number, got {value!r}")
         if p.batch_size * p.num_minibatches % p.num_envs:
             raise ValueError(f"ppo.batch_size * ppo.num_minibatches ({p.batch_size * p.num_minibatches}) must be a "
                              f"multiple of ppo.num_envs ({p.num_envs}) (Brax PPO's requirement)")
-        if self.episode_length % p.action_repeat:
-            raise ValueError(f"episode_length ({self.episode_length}) must be a multiple of ppo.action_repeat "
-                             f"({p.action_repeat})")
+        if self.episode_length % self.action_repeat:
+            raise ValueError(f"episode_length ({self.episode_length}) must be a multiple of {self.algo}.action_repeat "
+                             f"({self.action_repeat})")
+        a = self.apg
+        if a.horizon_length % a.action_repeat:
+            raise ValueError(f"apg.horizon_length ({a.horizon_length}) must be a multiple of apg.action_repeat "
+                             f"({a.action_repeat})")
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d["ppo"]["policy_hidden"] = list(self.ppo.policy_hidden)
-        d["ppo"]["value_hidden"] = list(self.ppo.value_hidden)
+        for section in ("ppo", "apg"):
+            for key, value in d[section].items():
+                if isinstance(value, tuple):
+                    d[section][key] = list(value)
         return d
 
     def override(self, **kwargs) -> "RunConfig":
@@ -84,19 +127,37 @@ class RunConfig:
         return replace(self, **{k: v for k, v in kwargs.items() if v is not None})
 
 
+def _check_section(section: str, cfg) -> None:
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.type in (int, "int") and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
+            raise ValueError(f"config field '{section}.{f.name}' must be a positive integer, got {value!r}")
+        if f.type in (float, "float") and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                               and value >= 0):
+            raise ValueError(f"config field '{section}.{f.name}' must be a non-negative number, got {value!r}")
+        if f.type in (bool, "bool") and not isinstance(value, bool):
+            raise ValueError(f"config field '{section}.{f.name}' must be true or false, got {value!r}")
+        if f.type in (tuple, "tuple") and not (value and all(isinstance(x, int) and x > 0 for x in value)):
+            raise ValueError(f"config field '{section}.{f.name}' must be a list of positive layer sizes, got {value!r}")
+
+
+_SECTIONS = {"ppo": PPOConfig, "apg": APGConfig}
+
+
 def from_dict(d: dict) -> RunConfig:
     """Build (and validate) a ``RunConfig``; unknown keys raise with their names."""
     d = dict(d)
-    ppo = dict(d.pop("ppo", {}))
-    known = {f.name for f in fields(RunConfig)}
-    known_ppo = {f.name for f in fields(PPOConfig)}
-    unknown = sorted(set(d) - known) + sorted(f"ppo.{k}" for k in set(ppo) - known_ppo)
+    sections = {name: dict(d.pop(name, {})) for name in _SECTIONS}
+    unknown = sorted(set(d) - {f.name for f in fields(RunConfig)})
+    for name, cls in _SECTIONS.items():
+        known = {f.name for f in fields(cls)}
+        unknown += sorted(f"{name}.{k}" for k in set(sections[name]) - known)
+        for f in fields(cls):
+            if f.type in (tuple, "tuple") and isinstance(sections[name].get(f.name), list):
+                sections[name][f.name] = tuple(sections[name][f.name])
     if unknown:
         raise ValueError(f"unknown config fields {unknown}")
-    for key in ("policy_hidden", "value_hidden"):
-        if key in ppo:
-            ppo[key] = tuple(int(x) for x in ppo[key])
-    return RunConfig(**d, ppo=PPOConfig(**ppo))
+    return RunConfig(**d, **{name: cls(**sections[name]) for name, cls in _SECTIONS.items()})
 
 
 def load(name_or_path) -> RunConfig:

@@ -13,7 +13,7 @@ import json
 import time
 from pathlib import Path
 
-from jaxlimits.training import brax_ppo, evaluate, plots
+from jaxlimits.training import algos, brax_ppo, evaluate, plots
 from jaxlimits.training.config import RunConfig
 
 
@@ -24,12 +24,12 @@ def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool 
     runs = {}
     for shield in shields:
         run_dir = out / "runs" / shield
-        summary = brax_ppo.train(cfg.override(shield=shield), run_dir, show_progress=show_progress)
+        summary = algos.train(cfg.override(shield=shield), run_dir, show_progress=show_progress)
         runs[shield] = run_dir
-        run_cfg, policy, params = brax_ppo.load_policy(run_dir)
-        env = brax_ppo.make_env(run_cfg.env, run_cfg.shield)
+        run_cfg, policy, params = algos.load_policy(run_dir)
+        env = brax_ppo.env_from_config(run_cfg)
         row = evaluate.evaluate(env, policy, params, episodes=cfg.eval_episodes, episode_length=cfg.episode_length,
-                                action_repeat=cfg.ppo.action_repeat, seed=cfg.seed + 1)
+                                action_repeat=cfg.action_repeat, seed=cfg.seed + 1)
         results["shields"][shield] = {"training": summary["training"], "training_wall_s": summary["wall_s"],
                                       "training_env_steps_per_s": summary["env_steps_per_s"], "evaluation": row}
     results["wall_s"] = time.perf_counter() - t0

@@ -1,6 +1,7 @@
-"""Stable-Baselines3 PPO on the Gymnasium front, violations counted from ``info["violation"]``.
+"""Stable-Baselines3 PPO and SAC on the Gymnasium front, violations counted from ``info["violation"]``.
 
-``train(shield, total_timesteps, out)`` trains SB3's ``PPO("MlpPolicy")`` (torch, CPU) on
+``train(shield, total_timesteps, out, algo="ppo"|"sac")`` trains SB3's ``PPO("MlpPolicy")`` or
+``SAC("MlpPolicy")`` (torch, CPU) on
 ``gymnasium.make("jaxlimits/PlanarReach-v0", shield=shield)`` and writes to ``out``:
 ``policy.npz`` (the policy's ``state_dict`` as arrays: no pickle, unlike SB3's ``.zip``),
 ``metrics.json`` (env-steps, violation counts and maxima from every step's ``info["violation"]``,
@@ -47,14 +48,24 @@ class _ViolationCounter:
                 self.episode_returns.append(float(info["episode"]["r"]))
 
 
-def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *, arm: str = "planar",
-          max_episode_steps: int = 200, seed: int = 0, n_steps: int = 512, batch_size: int = 64):
-    """Train SB3 PPO; returns ``(model, metrics)`` and writes ``out`` if given."""
+ALGOS = ("ppo", "sac")
+
+
+def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *, algo: str = "ppo",
+          arm: str = "planar", max_episode_steps: int = 200, seed: int = 0, n_steps: int = 512,
+          batch_size: int = 64, learning_starts: int = 1000):
+    """Train SB3 PPO or SAC; returns ``(model, metrics)`` and writes ``out`` if given.
+
+    ``n_steps`` is PPO's rollout length, ``learning_starts`` SAC's number of random steps before
+    its first update; ``batch_size`` is either's minibatch.
+    """
     import torch
-    from stable_baselines3 import PPO
+    from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.monitor import Monitor
 
+    if algo not in ALGOS:
+        raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}")
     torch.set_num_threads(1)
     counter = _ViolationCounter()
 
@@ -64,10 +75,13 @@ def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *,
             return True
 
     env = Monitor(_make_env(shield, arm, max_episode_steps))
-    model = PPO("MlpPolicy", env, n_steps=n_steps, batch_size=batch_size, seed=seed, device="cpu", verbose=0,
-                policy_kwargs={"net_arch": [64, 64]})
+    common = dict(batch_size=batch_size, seed=seed, device="cpu", verbose=0, policy_kwargs={"net_arch": [64, 64]})
+    if algo == "ppo":
+        model = PPO("MlpPolicy", env, n_steps=n_steps, **common)
+    else:
+        model = SAC("MlpPolicy", env, learning_starts=learning_starts, **common)
     model.learn(total_timesteps=total_timesteps, callback=Callback())
-    metrics = {"shield": shield, "arm": arm, "env_steps": counter.env_steps, "episode_returns": counter.episode_returns,
+    metrics = {"algo": algo, "shield": shield, "arm": arm, "env_steps": counter.env_steps, "episode_returns": counter.episode_returns,
                **{f"violations/{k}": v for k, v in counter.counts.items()},
                **{f"max_violation/{k}": v for k, v in counter.maxes.items()}}
     if out is not None:

@@ -1,0 +1,103 @@
+"""Action modes before the shield, the IK observation, and gradients through the shielded step (APG's path)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxlimits.envs.actions import VelocityActions, velocity_to_acc, with_action_mode
+from jaxlimits.envs.arm import make_planar_reach
+from jaxlimits.envs.safety import SafetyWrapper
+
+
+@pytest.fixture(scope="module")
+def env():
+    return make_planar_reach(ik_observation=True)
+
+
+def test_velocity_mode_reaches_a_feasible_velocity_in_one_step(env):
+    """Deadbeat: a reachable ``v_des`` is met at the end of the step (semi-implicit model), exactly up to f32."""
+    w = VelocityActions(SafetyWrapper(env, "viability"))
+    s = w.reset(jax.random.PRNGKey(0))
+    s = s.replace(pipeline_state=s.pipeline_state.replace(qpos=jnp.zeros(3), qvel=jnp.asarray([0.01, -0.02, 0.0])))
+    action = jnp.asarray([0.002, -0.004, 0.001])  # v_des = action * v_max, |v_des - v| / dt < a_max
+    s2 = jax.jit(w.step)(s, action)
+    np.testing.assert_allclose(s2.pipeline_state.qvel, action * env.limits.v_max, atol=2e-5)
+    assert float(s2.metrics["intervention"]) == 0.0
+
+
+def test_velocity_mode_keeps_the_guarantee_under_full_commands(env):
+    """Always asking for +v_max (or -v_max) drives every joint to its limit: zero violations, arrival at rest."""
+    w = VelocityActions(SafetyWrapper(env, "viability"))
+
+    @jax.jit
+    def run(key, sign):
+        s = w.reset(key)
+
+        def body(s, _):
+            s = w.step(s, sign * jnp.ones(3))
+            return s, (s.metrics["count/position"], s.metrics["count/velocity"])
+
+        return jax.lax.scan(body, s, None, length=250)
+
+    for sign in (1.0, -1.0):
+        s, (pos, vel) = run(jax.random.PRNGKey(3), sign)
+        assert float(pos.sum()) == 0 and float(vel.sum()) == 0
+        q = np.asarray(s.pipeline_state.qpos)
+        limit = env.limits.q_max if sign > 0 else env.limits.q_min
+        np.testing.assert_allclose(q, limit, atol=2e-3)
+
+
+def test_velocity_to_acc_and_mode_errors():
+    np.testing.assert_allclose(velocity_to_acc(jnp.ones(2), jnp.zeros(2), 0.01), 100.0 * np.ones(2))
+    assert not np.all(np.isfinite(velocity_to_acc(jnp.asarray([np.nan, 0.0]), jnp.zeros(2), 0.01)))
+    with pytest.raises(ValueError, match="action mode"):
+        with_action_mode(None, "torque")
+
+
+def test_ik_observation_is_the_damped_least_squares_step(env):
+    """The appended entries equal ``J^T (J J^T + lam^2 I)^-1 e`` with ``J`` from finite differences of the FK."""
+    from jaxlimits.envs.arm import IK_DAMPING
+
+    s = env.reset(jax.random.PRNGKey(5))
+    q = np.asarray(s.pipeline_state.qpos, np.float64)
+    obs = np.asarray(s.obs)
+    assert obs.shape == (env.observation_size,) == (4 * env.n + 6,)
+    err = obs[3 * env.n + 3: 3 * env.n + 6]
+    eps = 1e-3
+    J = np.stack([(np.asarray(env.ee_position(q + eps * e)) - np.asarray(env.ee_position(q - eps * e))) / (2 * eps)
+                  for e in np.eye(env.n)], axis=1)
+    expected = J.T @ np.linalg.solve(J @ J.T + IK_DAMPING**2 * np.eye(3), err)
+    np.testing.assert_allclose(obs[4 * env.n + 6 - env.n:], expected, atol=2e-3 * max(1.0, np.abs(expected).max()))
+
+
+def test_gradient_through_the_shield_is_the_projection_derivative(env):
+    """APG differentiates the reward through the shielded step: a joint the bounds clip passes no gradient
+    to its action (the clip's derivative), a free joint passes the physics' gradient (finite differences)."""
+    w = SafetyWrapper(env, "viability")
+    s = w.reset(jax.random.PRNGKey(7))
+    q = 0.5 * (env.limits.q_max + env.limits.q_min)
+    q[0] = env.limits.q_max[0] - 0.18  # joint 0 fast toward its limit (stopping distance 0.162 rad): it must brake
+    v = np.array([env.limits.v_max[0] * 0.9, 0.0, 0.0])
+    s = s.replace(pipeline_state=s.pipeline_state.replace(qpos=jnp.asarray(q, jnp.float32), qvel=jnp.asarray(v, jnp.float32)))
+    b = w.bounds(s)
+    action = jnp.asarray([1.0, 0.3, -0.2], jnp.float32)  # joint 0 above its (braking) upper bound, others inside
+    a_max = np.asarray(env.limits.a_max)
+    assert float(action[0] * a_max[0]) > float(b.upper[0])
+    assert np.all((np.asarray(action[1:]) * a_max[1:] > np.asarray(b.lower[1:])) & (np.asarray(action[1:]) * a_max[1:] < np.asarray(b.upper[1:])))
+
+    def reward(a):
+        return w.step(s, a).reward
+
+    g = np.asarray(jax.jit(jax.grad(reward))(action))
+    assert np.all(np.isfinite(g))
+    assert g[0] == 0.0
+    eps = 1e-2
+    for j in (1, 2):
+        e = np.zeros(3, np.float32)
+        e[j] = eps
+        fd = (float(reward(action + e)) - float(reward(action - e))) / (2 * eps)
+        assert g[j] != 0.0
+        np.testing.assert_allclose(g[j], fd, rtol=0.05, atol=1e-6)
