@@ -16,6 +16,7 @@ _EXPORTS = {
     "make_planar_reach": "jaxlimits.envs.arm",
     "SafetyWrapper": "jaxlimits.envs.safety",
     "adversarial_rollout": "jaxlimits.envs.safety",
+    "TaskSpaceActions": "jaxlimits.envs.task_space",
     "ArmEnv": "jaxlimits.envs.gym",
     "ArmVectorEnv": "jaxlimits.envs.gym",
     "register_envs": "jaxlimits.envs.gym",

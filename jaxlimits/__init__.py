@@ -8,6 +8,7 @@ from jaxlimits._src.integrate import Step, integrate_step
 from jaxlimits._src.jerk import check_jerk_condition, is_viable_jerk
 from jaxlimits._src.limits import JointLimits
 from jaxlimits._src.qp import BoxQPResult, project_box, solve_box_qp
+from jaxlimits._src.timescale import TimeScaleResult, fixed_time_ik, timescale_ik
 from jaxlimits._src.torque import TorqueBounds, acc_bounds_from_torque, torque_acc_box, torque_acc_box_conservative
 
 __version__ = "0.1.0"
@@ -17,17 +18,20 @@ __all__ = [
     "BoxQPResult",
     "JointLimits",
     "Step",
+    "TimeScaleResult",
     "TorqueBounds",
     "acc_bounds",
     "acc_bounds_from_torque",
     "bound_terms",
     "check_condition_11",
     "check_jerk_condition",
+    "fixed_time_ik",
     "integrate_step",
     "is_viable",
     "is_viable_jerk",
     "project_box",
     "solve_box_qp",
+    "timescale_ik",
     "torque_acc_box",
     "torque_acc_box_conservative",
 ]
