@@ -1,0 +1,311 @@
+"""Impact-aware joint bounds (Wang & Kheddar, RSS 2019): predicted jumps, constraints, speed cap.
+
+A point contact with Jacobian ``J`` (3, n) hits a wall whose normal ``n̂`` is known. ``n̂`` is the
+*strike direction* (unit, pointing from the robot into the wall), so the contact-normal velocity
+``w = n̂ . J v`` is positive while approaching. The discrete impact model (eqs. 2-6, 19, 22):
+
+    A      = J M^-1 J^T,   M_eq = A^-1                                  (6)  equivalent mass
+    dp     = -(1 + c) n̂ n̂^T J v                                          (4)  contact-velocity jump
+    f_bar  = M_eq dp / dt_imp                                           (5)  average impulsive force
+    dq     = M^-1 J^T M_eq dp = -(1 + c) w u,   u   = M^-1 J^T M_eq n̂   (22) joint-velocity jump
+    dtau   = M dq / dt_imp    = -(1 + c) w t / dt_imp,  t = J^T M_eq n̂   (19) impulsive joint torque
+
+Every jump is linear in ``w``; the worst case of the restitution range ``[c_min, c_max]`` is
+``c_max`` (the jumps grow with ``1 + c``), which is what the functions take.
+
+Constraints (``impact_constraints``), with ``dt`` the control step and the impact assumed at the
+end of the step about to be commanded (``v_pre = v + a dt``, the paper's (13)):
+
+    (16) position:          (q_min - q) / dt <= dq <= (q_max - q) / dt
+    (17) velocity:          -v_max <= v_pre + dq <= v_max
+    (20) impulsive torque:  -tau_imp_max <= dtau <= tau_imp_max
+
+(16) is the paper's with the signs of the printed equation corrected so that ``q + dt dq`` stays in
+range; (17) bounds the true post-impact velocity ``v + a dt + dq`` (the paper writes ``v(t_k)`` in
+place of ``v_pre`` after "removing q̈ from both sides"; keeping ``a dt`` makes the rows exact).
+As in the paper the rows are not gated by the sign of ``w``: they also bound a retreat.
+
+Speed cap (``impact_speed_cap``): the largest approach velocity ``w >= 0`` for which the jumps
+predicted at a given pre-impact state satisfy (16), (17), (20). Each row is linear in ``w`` and
+holds at ``w = 0`` when the state itself is inside its limits, so the admissible set is ``[0, cap]``
+with ``cap = min_i bound_i / ((1 + c) |slope_i|)`` (the bound on the side the jump goes).
+
+Regularisation (near singular configurations ``A`` loses rank and ``M_eq`` blows up): we use
+``M_eq = (A + lam I)^-1`` with ``lam = reg * trace(A) / 3 + tiny``. Where ``sigma_min(A) >> lam``
+this is ``A^-1`` to relative error ``~ lam / sigma_min``; near a singularity it *underestimates* the
+equivalent mass along the lost direction (bounded by ``1 / lam``), so the predicted jumps there are
+a lower estimate. The default ``reg = 1e-6`` only matters for ``sigma_min / trace(A) < ~1e-4``.
+Denominators of the cap are floored (``safe_math.tiny_floor``): a row whose slope is zero gives a
+large finite cap, never inf or NaN; values and gradients are finite for finite input.
+
+Everything broadcasts over leading batch dimensions (``M`` (..., n, n), ``J`` (..., 3, n) or
+(..., 6, n) of which the first three rows, the linear part, are used), runs under jit/vmap/grad and
+works in float32 and float64. Units: SI (m, s, rad, N, N m).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxlimits._src.safe_math import tiny_floor
+
+DEFAULT_REG = 1e-6
+
+
+class ImpactJump(NamedTuple):
+    """The predicted jumps for one contact (shapes for a batch ``...``).
+
+    w: (...,) contact-normal velocity ``n̂ . J v`` before the impact [m/s] (> 0: approaching).
+    dq: (..., n) joint-velocity jump (22) [rad/s].
+    dtau: (..., n) impulsive joint torque (19) [N m].
+    force: (..., 3) average impulsive contact force (5) [N].
+    dq_dw, dtau_dw: (..., n) the jumps per unit ``w`` (``-(1 + c) u`` and ``-(1 + c) t / dt_imp``).
+    """
+
+    w: jnp.ndarray
+    dq: jnp.ndarray
+    dtau: jnp.ndarray
+    force: jnp.ndarray
+    dq_dw: jnp.ndarray
+    dtau_dw: jnp.ndarray
+
+
+class SpeedCap(NamedTuple):
+    """The largest admissible approach velocity ``cap = min(position, velocity, torque)`` [m/s], (...,)."""
+
+    cap: jnp.ndarray
+    position: jnp.ndarray
+    velocity: jnp.ndarray
+    torque: jnp.ndarray
+
+
+# ---- eager checks ------------------------------------------------------------------------------
+def _concrete(x) -> bool:
+    try:
+        np.asarray(x)
+        return True
+    except Exception:  # a tracer
+        return False
+
+
+def _check(M, J, normal=None, **scalars):
+    """Eager shape/value checks; value checks only for concrete inputs. Raises ``ValueError`` naming the field."""
+    M, J = jnp.asarray(M), jnp.asarray(J)
+    if M.ndim < 2 or M.shape[-1] != M.shape[-2]:
+        raise ValueError(f"impact: M must be (..., n, n), got shape {M.shape}")
+    n = M.shape[-1]
+    if J.ndim < 2 or J.shape[-2] not in (3, 6) or J.shape[-1] != n:
+        raise ValueError(f"impact: J must be (..., 3, {n}) or (..., 6, {n}), got shape {J.shape}")
+    if normal is not None:
+        normal = jnp.asarray(normal)
+        if normal.shape[-1:] != (3,):
+            raise ValueError(f"impact: normal must be (..., 3), got shape {normal.shape}")
+        if _concrete(normal):
+            nn = np.linalg.norm(np.asarray(normal, np.float64), axis=-1)
+            if not np.all(np.abs(nn - 1.0) < 1e-3):
+                raise ValueError(f"impact: normal must be a unit vector, got norm {nn.tolist()}")
+    for name, val in scalars.items():
+        if val is None or not _concrete(val):
+            continue
+        arr = np.asarray(val, np.float64)
+        if name == "c_max":
+            ok, what = np.all((arr >= 0) & (arr <= 1)), "in [0, 1]"
+        elif name == "reg":
+            ok, what = np.all(arr >= 0), ">= 0"
+        else:
+            ok, what = np.all(arr > 0), "> 0"
+        if not (np.all(np.isfinite(arr)) and ok):
+            raise ValueError(f"impact: {name} must be finite and {what}, got {arr.tolist()}")
+
+
+def check_restitution(c_min, c_max) -> float:
+    """Validate a restitution range eagerly and return its worst case ``c_max`` (0 <= c_min <= c_max <= 1)."""
+    c_min, c_max = float(c_min), float(c_max)
+    if not (np.isfinite(c_min) and np.isfinite(c_max) and 0.0 <= c_min <= c_max <= 1.0):
+        raise ValueError(f"impact: restitution range must satisfy 0 <= c_min <= c_max <= 1, got [{c_min}, {c_max}]")
+    return c_max
+
+
+# ---- model ------------------------------------------------------------------------------------
+def _lin(J):
+    return J[..., :3, :]
+
+
+def _minv_jt(M, J):
+    """``M^-1 J^T`` (..., n, 3) by a linear solve (``M`` is symmetric positive definite)."""
+    return jnp.linalg.solve(M, jnp.swapaxes(J, -1, -2))
+
+
+def _reg_A(A, reg):
+    dtype = A.dtype
+    tr = jnp.trace(A, axis1=-2, axis2=-1)
+    lam = jnp.asarray(reg, dtype) * tr / 3.0 + tiny_floor(dtype)
+    return A + lam[..., None, None] * jnp.broadcast_to(jnp.eye(3, dtype=dtype), A.shape)
+
+
+def equivalent_mass(M, J, reg=DEFAULT_REG):
+    """The equivalent (operational-space) mass ``M_eq = (J M^-1 J^T + lam I)^-1`` (6), ``(..., 3, 3)`` [kg].
+
+    ``M``: (..., n, n) joint-space inertia; ``J``: (..., 3 or 6, n) contact-point Jacobian (linear rows
+    used). ``reg``: relative regularisation (see the module docstring); ``reg=0`` leaves only a
+    ``tiny`` floor, i.e. the exact inverse where ``A`` is invertible.
+    """
+    _check(M, J, reg=reg)
+    M, J = _promote(M, J)
+    J = _lin(J)
+    A = J @ _minv_jt(M, J)
+    Ar = _reg_A(A, reg)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=A.dtype), Ar.shape)
+    return jnp.linalg.solve(Ar, eye)
+
+
+def _promote(*xs):
+    dtype = jnp.result_type(*[jnp.asarray(x) for x in xs], jnp.float32)
+    return [jnp.asarray(x, dtype) for x in xs]
+
+
+def _directions(M, J, normal, reg):
+    """``(g, u, t, M_eq n̂)``: ``g = J^T n̂`` (so ``w = g . v``), ``u = M^-1 J^T M_eq n̂``, ``t = J^T M_eq n̂ = M u``."""
+    J = _lin(J)
+    n = M.shape[-1]
+    lead = jnp.broadcast_shapes(M.shape[:-2], J.shape[:-2], normal.shape[:-1])
+    M = jnp.broadcast_to(M, lead + (n, n))
+    J = jnp.broadcast_to(J, lead + (3, n))
+    nvec = jnp.broadcast_to(normal, lead + (3,))
+    MiJt = _minv_jt(M, J)  # (..., n, 3)
+    Ar = _reg_A(J @ MiJt, reg)
+    meq_n = jnp.linalg.solve(Ar, nvec[..., None])[..., 0]  # (..., 3)
+    g = jnp.einsum("...in,...i->...n", J, nvec)
+    u = jnp.einsum("...ni,...i->...n", MiJt, meq_n)
+    t = jnp.einsum("...in,...i->...n", J, meq_n)
+    return g, u, t, meq_n
+
+
+def impact_jump(M, J, normal, v, c_max, dt_impact, reg=DEFAULT_REG) -> ImpactJump:
+    """The jumps an impact would cause at joint velocity ``v`` (eqs. 3-5, 19, 22).
+
+    Args:
+      M: (..., n, n) joint-space inertia [kg m^2]. J: (..., 3 or 6, n) contact Jacobian.
+      normal: (..., 3) unit strike direction (into the wall). v: (..., n) pre-impact joint velocity [rad/s].
+      c_max: worst-case restitution coefficient (upper end of ``[c_min, c_max]``, see
+        ``check_restitution``), a scalar. dt_impact: impact duration [s] (not the control step), a scalar.
+      reg: relative regularisation of ``J M^-1 J^T``.
+    Returns ``ImpactJump``. The formulas are the paper's, linear in ``w`` (not gated by its sign).
+    """
+    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, reg=reg)
+    M, J, normal, v = _promote(M, J, normal, v)
+    dtype = M.dtype
+    k = 1.0 + jnp.asarray(c_max, dtype)
+    kt = k / jnp.asarray(dt_impact, dtype)
+    g, u, t, meq_n = _directions(M, J, normal, reg)
+    lead = jnp.broadcast_shapes(g.shape, v.shape)
+    g, u, t, v = (jnp.broadcast_to(x, lead) for x in (g, u, t, v))
+    meq_n = jnp.broadcast_to(meq_n, lead[:-1] + (3,))
+    w = jnp.sum(g * v, axis=-1)
+    dq_dw = -k * u
+    dtau_dw = -kt * t
+    dq = dq_dw * w[..., None]
+    dtau = dtau_dw * w[..., None]
+    force = -kt * w[..., None] * meq_n
+    return ImpactJump(w, dq, dtau, force, dq_dw, dtau_dw)
+
+
+def _bounds(q, v_pre, q_min, q_max, v_max, tau_imp_max, dt):
+    """Per-row ``(lo, hi)`` for the jumps: position (16), velocity (17) on dq; torque (20) on dtau."""
+    pos = ((q_min - q) / dt, (q_max - q) / dt)
+    vel = (-v_max - v_pre, v_max - v_pre)
+    tau = (-tau_imp_max, tau_imp_max)
+    return pos, vel, tau
+
+
+def impact_speed_cap(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG,
+                     v_pre_range=None) -> SpeedCap:
+    """The largest approach velocity ``w >= 0`` whose predicted jumps satisfy (16), (17), (20).
+
+    The jumps are those of ``impact_jump`` at the state ``(q, v)`` (the pre-impact state; for the
+    shield ``v`` is the velocity at the impact instant), with the row bounds of (16) and (17)
+    evaluated at ``q`` and ``v``. A bound already violated at ``w = 0`` (state outside its limits)
+    gives a cap of 0 for that family. Returns ``SpeedCap`` (each (...,), [m/s], finite, >= 0).
+
+    Args: ``limits`` a ``jl.JointLimits`` (``q_min, q_max, v_max`` used); ``tau_imp_max`` (n,) or
+    scalar, the impulsive torque bound [N m] (> 0); ``dt`` the control step [s]; the rest as in
+    ``impact_jump``. ``v_pre_range``: optional ``(v_lo, v_hi)`` (..., n): the pre-impact velocity is
+    only known to lie in this box (e.g. ``v + dt [lower, upper]`` for the next step's commands); (17)
+    then holds for every velocity in it: ``-v_max - v_lo <= dq <= v_max - v_hi``.
+    """
+    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg)
+    jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg)
+    dtype = jump.dq.dtype
+    f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    q, v = jnp.broadcast_to(f(q), jump.dq.shape), jnp.broadcast_to(f(v), jump.dq.shape)
+    b = lambda x: jnp.broadcast_to(f(x), q.shape)  # noqa: E731
+    pos, vel, tau = _bounds(q, v, b(limits.q_min), b(limits.q_max), b(limits.v_max), b(tau_imp_max), f(dt))
+    if v_pre_range is not None:
+        v_lo, v_hi = b(v_pre_range[0]), b(v_pre_range[1])
+        vel = (-b(limits.v_max) - v_lo, b(limits.v_max) - v_hi)
+    floor = tiny_floor(dtype)
+
+    def cap_of(slope, lo_hi):
+        lo, hi = lo_hi
+        # for w >= 0 the row is slope * w; it meets hi when slope > 0 and lo when slope < 0
+        room = jnp.where(slope > 0, hi, -lo)
+        room = jnp.maximum(room, 0.0)
+        return jnp.min(room / jnp.maximum(jnp.abs(slope), floor), axis=-1)
+
+    cp = cap_of(jump.dq_dw, pos)
+    cv = cap_of(jump.dq_dw, vel)
+    ct = cap_of(jump.dtau_dw, tau)
+    cap = jnp.minimum(jnp.minimum(cp, cv), ct)
+    return SpeedCap(cap, cp, cv, ct)
+
+
+def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG):
+    """The constraints (16), (17), (20) as ``G a <= h`` in the joint acceleration ``a`` [rad/s^2].
+
+    The impact is predicted at the end of the step: ``v_pre = v + a dt`` (13), so
+    ``w(a) = g . v + dt g . a`` with ``g = J^T n̂`` and every jump is affine in ``a``.
+
+    Returns ``(G, h)``: ``G`` (..., 6 n, n), ``h`` (..., 6 n); rows in the order
+    [(16) upper, (16) lower, (17) upper, (17) lower, (20) upper, (20) lower], each block ``n`` rows
+    (joint order). Ungated by the sign of ``w``, as in the paper.
+    """
+    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg)
+    jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg)
+    dtype = jump.dq.dtype
+    f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    lead = jump.dq.shape
+    q, v = jnp.broadcast_to(f(q), lead), jnp.broadcast_to(f(v), lead)
+    dt = f(dt)
+    g = jnp.broadcast_to(_directions(f(M), f(J), f(normal), reg)[0], lead)
+    n = q.shape[-1]
+    w0 = jump.w[..., None]
+    # jump(a) = s * (w0 + dt g . a): rows  s dt g^T a  <=  hi - s w0  /  -s dt g^T a <= -lo + s w0
+    b = lambda x: jnp.broadcast_to(f(x), lead)  # noqa: E731
+    (plo, phi), (_, _), (tlo, thi) = _bounds(q, v, b(limits.q_min), b(limits.q_max), b(limits.v_max), b(tau_imp_max), dt)
+    sq, st = jump.dq_dw, jump.dtau_dw
+    outer_q = dt * sq[..., :, None] * g[..., None, :]  # (..., n, n)
+    outer_t = dt * st[..., :, None] * g[..., None, :]
+    eye = jnp.broadcast_to(jnp.eye(n, dtype=dtype), outer_q.shape)
+    vmax = b(limits.v_max)
+    # (17): v + dt a + s (w0 + dt g.a) <= v_max   and   >= -v_max
+    vel_G = dt * eye + outer_q
+    G = jnp.concatenate([outer_q, -outer_q, vel_G, -vel_G, outer_t, -outer_t], axis=-2)
+    lead = G.shape[:-2]
+    bc = lambda x: jnp.broadcast_to(x, lead + (n,))  # noqa: E731
+    h = jnp.concatenate([
+        bc(phi - sq * w0), bc(-plo + sq * w0),
+        bc(vmax - v - sq * w0), bc(vmax + v + sq * w0),
+        bc(thi - st * w0), bc(-tlo + st * w0),
+    ], axis=-1)
+    return G, h
+
+
+def speed_cap_halfspace(M, J, normal, v, cap, dt):
+    """The cap as one halfspace in ``a``: ``w(a) = g . (v + a dt) <= cap``; returns ``(G (..., 1, n), h (..., 1))``."""
+    M, J, normal, v, cap = _promote(M, J, normal, v, cap)
+    g = jnp.einsum("...in,...i->...n", _lin(J), jnp.broadcast_to(normal, J.shape[:-2] + (3,)))
+    dt = jnp.asarray(dt, g.dtype)
+    return (dt * g)[..., None, :], (cap - jnp.sum(g * v, axis=-1))[..., None]

@@ -1,0 +1,25 @@
+"""Impact-aware bounds (Wang & Kheddar 2019): ``import jaxlimits.impact`` (see ``docs/impact.md``)."""
+
+from jaxlimits._src.impact import (
+    DEFAULT_REG,
+    ImpactJump,
+    SpeedCap,
+    check_restitution,
+    equivalent_mass,
+    impact_constraints,
+    impact_jump,
+    impact_speed_cap,
+    speed_cap_halfspace,
+)
+
+__all__ = [
+    "DEFAULT_REG",
+    "ImpactJump",
+    "SpeedCap",
+    "check_restitution",
+    "equivalent_mass",
+    "impact_constraints",
+    "impact_jump",
+    "impact_speed_cap",
+    "speed_cap_halfspace",
+]
