@@ -4,6 +4,7 @@ The core (this package, without ``jaxlimits.envs``/``jaxlimits.training``) needs
 """
 
 from jaxlimits._src.bounds import Bounds, acc_bounds, bound_terms, check_condition_11, is_viable
+from jaxlimits._src.impact import ImpactJump, SpeedCap, equivalent_mass, impact_constraints, impact_jump, impact_speed_cap
 from jaxlimits._src.integrate import Step, integrate_step
 from jaxlimits._src.jerk import check_jerk_condition, is_viable_jerk
 from jaxlimits._src.limits import JointLimits
@@ -16,7 +17,9 @@ __version__ = "0.1.0"
 __all__ = [
     "Bounds",
     "BoxQPResult",
+    "ImpactJump",
     "JointLimits",
+    "SpeedCap",
     "Step",
     "TimeScaleResult",
     "TorqueBounds",
@@ -25,7 +28,11 @@ __all__ = [
     "bound_terms",
     "check_condition_11",
     "check_jerk_condition",
+    "equivalent_mass",
     "fixed_time_ik",
+    "impact_constraints",
+    "impact_jump",
+    "impact_speed_cap",
     "integrate_step",
     "is_viable",
     "is_viable_jerk",
