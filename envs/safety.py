@@ -22,6 +22,17 @@ win: the joint keeps the end of its limit interval nearest the box (the least de
 limits allow, the braking side), the motors may then saturate, and the step is counted in
 ``metrics['torque_box_conflict']`` (see ``intersect_torque_box``). Metrics ``torque_box_scale``
 (the unclipped ``s``) and ``torque_box_conflict`` are added.
+
+``impact=`` (envs with ``impact_terms``, e.g. ``WallStrike``) adds the impact-aware speed cap of
+Wang & Kheddar (``jaxlimits.impact``, see ``docs/impact.md``): the largest contact-normal velocity
+whose predicted jumps keep the position (16), velocity (17) and impulsive torque (20) bounds, for
+every pre-impact velocity the step's box allows, is imposed on the end-effector velocity at the end
+of the step as one halfspace ``J^T n̂ . (v + a dt) <= margin * cap``. The excess is first removed
+along ``u = M^-1 J^T M_eq n̂`` (``J u = n̂``: the tangential end-effector acceleration is kept; a
+Euclidean projection alone would turn the excess into tangential motion), then the box and the
+halfspace go through ``jl.solve_box_qp(..., G=, h=)`` (box exact, halfspace with least violation when the box
+cannot meet it: counted in ``metrics['impact_infeasible']``). Metrics ``impact_cap`` [m/s] and
+``impact_infeasible`` are added; the measured impact metrics (``impact/*``) are the env's.
 """
 
 from __future__ import annotations
@@ -32,6 +43,7 @@ import numpy as np
 
 import jaxlimits as jl
 from jaxlimits._src import bounds as _bounds
+from jaxlimits._src import impact as _impact
 from jaxlimits._src import torque as _torque
 from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach, State, Wrapper
 
@@ -86,12 +98,17 @@ class SafetyWrapper(Wrapper):
         the Panda with datasheet ``a_max``: with 1.0, 4 of 12 800 adversarial steps exceeded a torque
         limit (by <= 1.3 N m) without a conflict; with 0.95, none of 25 600.
 
-    Attributes: ``name`` (``method``, ``+torque_box`` when on; the key ``adversarial_rollout``
-    reports under).
+      impact: ``None`` (off: behaviour unchanged), ``True`` (the env's ``impact`` spec) or a dict
+        overriding any of ``c_range``, ``dt_impact``, ``tau_imp_max`` (n,) [N m], ``margin`` (the
+        cap is scaled by it, default 1.0), ``reg`` (see ``jaxlimits.impact``). Needs an env with
+        ``impact_terms(q, v) -> (M, J, normal)`` and an ``impact`` spec (``WallStrike``).
+
+    Attributes: ``name`` (``method``, ``+torque_box``/``+impact`` when on; the key
+    ``adversarial_rollout`` reports under).
     """
 
     def __init__(self, env: ArmReach, method: str = "viability", dt_factor: float = 1.0, torque_box: bool = False,
-                 torque_box_margin: float = 0.95):
+                 torque_box_margin: float = 0.95, impact=None):
         super().__init__(env)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -104,7 +121,8 @@ class SafetyWrapper(Wrapper):
         if not 0.0 < torque_box_margin <= 1.0:
             raise ValueError(f"torque_box_margin must be in (0, 1], got {torque_box_margin}")
         self.torque_box_margin = float(torque_box_margin)
-        self.name = method + ("+torque_box" if self.torque_box else "")
+        self.impact = self._impact_options(env, impact)
+        self.name = method + ("+torque_box" if self.torque_box else "") + ("+impact" if self.impact else "")
         self.limits = env.limits
         self.dt_factor = float(dt_factor)
         substeps = env.frame_skip * self.dt_factor
@@ -116,6 +134,52 @@ class SafetyWrapper(Wrapper):
             _bounds.make_model(self.dt_bounds, env.integrator, self.substeps)  # validates eagerly
             if method != "naive":
                 _bounds.check_condition_11(env.limits, self.dt_bounds)
+
+    @staticmethod
+    def _impact_options(env, impact):
+        if impact is None or impact is False:
+            return None
+        if not hasattr(env, "impact_terms") or not hasattr(env, "impact"):
+            raise ValueError(f"impact= needs an env with impact_terms and an impact spec (WallStrike), got {type(env).__name__}")
+        opts = {"c_range": env.impact.c_range, "dt_impact": env.impact.dt_impact,
+                "tau_imp_max": np.asarray(env.impact.tau_imp_max, np.float64), "margin": 1.0, "reg": _impact.DEFAULT_REG}
+        if impact is not True:
+            unknown = set(impact) - set(opts)
+            if unknown:
+                raise ValueError(f"impact: unknown options {sorted(unknown)}; known {sorted(opts)}")
+            opts.update(impact)
+        opts["c_max"] = _impact.check_restitution(*opts["c_range"])
+        tau = np.broadcast_to(np.asarray(opts["tau_imp_max"], np.float64), (env.n,)).copy()
+        if not np.all(np.isfinite(tau)) or np.any(tau <= 0):
+            raise ValueError(f"impact: tau_imp_max must be finite and > 0, got {tau.tolist()}")
+        opts["tau_imp_max"] = tau
+        if not (float(opts["dt_impact"]) > 0 and 0 < float(opts["margin"]) <= 1.0):
+            raise ValueError(f"impact: need dt_impact > 0 and 0 < margin <= 1, got {opts['dt_impact']}, {opts['margin']}")
+        return opts
+
+    def impact_cap(self, state: State, lower, upper):
+        """``(G, h, cap, u)``: the speed cap [m/s] at the state, its halfspace in ``a`` (``G`` (..., 1, n))
+        and the joint direction ``u = M^-1 J^T M_eq n̂`` (``J u = n̂``) along which ``_shield`` removes excess speed.
+
+        The cap holds for every pre-impact velocity ``v + dt [lower, upper]`` (the step's box).
+        Batched states are flattened and vmapped over.
+        """
+        o = self.impact
+        d = state.pipeline_state
+        q, v = d.qpos, d.qvel
+        n = self.env.n
+        lead = q.shape[:-1]
+        dt = jnp.float32(self.env.dt)
+        lo = (v + dt * lower).reshape((-1, n))
+        hi = (v + dt * upper).reshape((-1, n))
+        qf, vf = q.reshape((-1, n)), v.reshape((-1, n))
+        M, J, nrm = jax.vmap(self.env.impact_terms)(qf, vf)
+        cap = _impact.impact_speed_cap(M, J, nrm, qf, vf, self.limits, o["tau_imp_max"], dt, o["c_max"],
+                                       o["dt_impact"], o["reg"], v_pre_range=(jnp.minimum(lo, hi), jnp.maximum(lo, hi))).cap
+        cap = cap * jnp.float32(o["margin"])
+        G, h = _impact.speed_cap_halfspace(M, J, nrm, vf, cap, dt)
+        u = -_impact.impact_jump(M, J, nrm, vf, 0.0, 1.0, o["reg"]).dq_dw  # u = M^-1 J^T M_eq n̂
+        return G.reshape(lead + (1, n)), h.reshape(lead + (1,)), cap.reshape(lead), u.reshape(lead + (n,))
 
     def bounds(self, state: State, a_prev=None):
         """``jl.Bounds`` for the state of ``state`` (``(n,)``, or batched along leading axes).
@@ -185,7 +249,20 @@ class SafetyWrapper(Wrapper):
         brake = -jnp.sign(v) * jnp.asarray(self.limits.a_max, jnp.float32)
         a_in = jnp.where(bad, brake, a_des)
         extra = dict(extra, nonfinite_action=bad[..., 0].astype(jnp.float32))
-        return project(a_in, b.lower, b.upper), b, extra
+        if not self.impact:
+            return project(a_in, b.lower, b.upper), b, extra
+        G, h, cap, u = self.impact_cap(state, b.lower, b.upper)
+        # task-consistent correction first: remove the excess approach speed along u = M^-1 J^T M_eq n̂
+        # (J u = n̂: only the normal end-effector acceleration changes, not the tangential one), then
+        # the exact projection onto {box, halfspace} (a no-op when the corrected command is inside)
+        g = G[..., 0, :]
+        gu = jnp.sum(g * u, axis=-1, keepdims=True)
+        excess = jnp.maximum(jnp.sum(g * a_in, axis=-1, keepdims=True) - h, 0.0)
+        ok = gu > 1e-6
+        a_task = a_in - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
+        res = jl.solve_box_qp(a_task, b.lower, b.upper, G=G, h=h)
+        extra = dict(extra, impact_cap=cap, impact_infeasible=res.infeasible.astype(jnp.float32))
+        return res.x, b, extra
 
     def step(self, state: State, action) -> State:
         a_des = jnp.asarray(action, jnp.float32) * jnp.asarray(self.limits.a_max, jnp.float32)
@@ -210,6 +287,8 @@ class SafetyWrapper(Wrapper):
         metrics = dict(state.metrics, intervention=zero, viable=jnp.ones((), jnp.float32), nonfinite_action=zero)
         if self.torque_box:
             metrics.update(torque_box_scale=zero, torque_box_conflict=zero)
+        if self.impact:
+            metrics.update(impact_cap=zero, impact_infeasible=zero)
         n = self.env.n
         info = dict(state.info, a_des=jnp.zeros((n,), jnp.float32), a_safe=jnp.zeros((n,), jnp.float32),
                     lower=jnp.zeros((n,), jnp.float32), upper=jnp.zeros((n,), jnp.float32))

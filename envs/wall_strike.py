@@ -1,0 +1,405 @@
+"""Wall strike (Panda, MJX): reach and press a wall whose position along a known normal is uncertain.
+
+The scene is ``assets/panda.xml`` plus, built with ``mujoco.MjSpec`` (no copy of the arm's MJCF):
+a collision sphere on the end effector (``ee_ball``, radius ``ball_radius``) and a wall, a plane on
+a mocap body whose normal faces the robot. The strike direction ``normal`` (unit, from the robot
+into the wall) is known; the wall's distance along it is drawn per episode
+(``gap`` in ``[gap_low, gap_high]`` ahead of the ball). Only the ball and the wall collide; the
+joint-limit constraint stays disabled (overshoot is measured, as in ``ArmReach``).
+
+Actions are joint accelerations realised by inverse dynamics without contact forces (``ArmReach``);
+the constraint solver then adds the contact force, so *during contact the realised acceleration
+differs from the command* (``metrics['accel_error']`` measures it; it is 0 to roundoff before the
+first contact).
+
+Impact measurement (per episode, ``info['impact']``, from the MJX contact forces): at the first
+substep whose contact is active (penetration ``dist < 0``) the pre-impact joint velocity ``v_pre``,
+the position ``q_pre`` and the contact-normal velocity ``w`` (finite difference of the sphere's
+centre over the previous substep, ``normal`` component) are stored; over the following
+``window`` seconds the joint impulse ``sum(qfrc_constraint) h`` [N m s] and the largest ``|qvel|``
+are accumulated. ``metrics``: ``impact/hit`` (1 once hit), ``impact/w`` [m/s],
+``impact/tau`` = ``max_j |impulse_j| / dt_impact / tau_imp_max_j`` (measured impulsive torque over
+its bound: the rigid model's ``dtau = M dq / dt_impact`` is the same impulse over the same
+``dt_impact``), ``impact/v_post`` = ``max_j max_window |qvel_j| / v_max_j``; a ratio > 1 is a
+violation.
+
+Reward: ``-distance`` to the wall before contact, ``+ contact_bonus`` per step in contact, and the
+normal impulse delivered in the step, clipped to ``impulse_limit`` [N s] per step.
+"""
+
+from __future__ import annotations
+
+import functools
+import pathlib
+import tempfile
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+import jaxlimits as jl
+from jaxlimits._src import impact as _impact
+from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_broadcasting
+
+HOME = np.array([0.0, 0.0, 0.0, -1.57079, 0.0, 1.57079, -0.7853])
+
+
+class ImpactSpec(NamedTuple):
+    """The impact model's parameters and bounds (units SI).
+
+    c_range: restitution range ``(c_min, c_max)``; the predictions use ``c_max`` (worst case).
+    dt_impact: impact duration [s] (the paper's 0.005 s), distinct from the control step.
+    tau_imp_max: (n,) impulsive joint torque bound [N m].
+    window: measurement window after the first contact [s].
+    """
+
+    c_range: tuple
+    dt_impact: float
+    tau_imp_max: np.ndarray
+    window: float
+
+
+@functools.lru_cache(maxsize=8)
+def wall_xml(ball_radius: float = 0.02, solref=(0.004, 1.0), friction: float = 1.0) -> str:
+    """Path of the generated scene MJCF (``panda.xml`` + ``ee_ball`` + mocap wall), cached per process."""
+    spec = mujoco.MjSpec.from_file(str(ASSETS / "panda.xml"))
+    ball = spec.body("attachment").add_geom()
+    ball.name, ball.type, ball.size = "ee_ball", mujoco.mjtGeom.mjGEOM_SPHERE, [ball_radius, 0, 0]
+    ball.contype, ball.conaffinity, ball.mass, ball.condim = 1, 1, 0.0, 3
+    ball.solref, ball.friction = list(solref), [friction, 0.005, 0.0001]
+    wall = spec.worldbody.add_body()
+    wall.name, wall.mocap = "wall", True
+    g = wall.add_geom()
+    g.name, g.type, g.size = "wall", mujoco.mjtGeom.mjGEOM_PLANE, [0.6, 0.6, 0.01]
+    g.contype, g.conaffinity, g.solref, g.friction = 1, 1, list(solref), [friction, 0.005, 0.0001]
+    g.rgba = [0.3, 0.5, 0.8, 0.5]
+    spec.compile()
+    path = pathlib.Path(tempfile.mkdtemp(prefix="jaxlimits_wall_")) / "panda_wall.xml"
+    path.write_text(spec.to_xml())
+    return str(path)
+
+
+def _quat_z_to(direction) -> np.ndarray:
+    """A unit quaternion (w, x, y, z) rotating the z axis onto ``direction`` (a plane's normal is its z)."""
+    z = np.array([0.0, 0.0, 1.0])
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    c = float(z @ d)
+    if c < -1 + 1e-12:
+        return np.array([0.0, 1.0, 0.0, 0.0])
+    axis = np.cross(z, d)
+    q = np.concatenate([[1.0 + c], axis])
+    return q / np.linalg.norm(q)
+
+
+class WallStrike(ArmReach):
+    """Strike and press a wall ahead of the end effector (Panda, MJX, contacts on).
+
+    Args:
+      normal: strike direction (3,), unit after normalisation (the wall's normal points back at the robot).
+      gap_low, gap_high: the wall is ``gap`` ahead of the ball's surface at reset, uniform [m].
+      q_noise: initial joints are ``HOME`` + uniform(-q_noise, q_noise) [rad].
+      c_range, dt_impact, tau_imp_scale, window: the impact model (``ImpactSpec``); the impulsive
+        torque bound is ``tau_imp_scale * tau_max`` (motor torque limits by default).
+      impulse_limit: reward clip on the normal impulse per step [N s]; contact_bonus per step in contact.
+      ball_radius, solref, friction: contact parameters (``solref[0] = 0.004`` = 2 substeps is the
+        stiffest MuJoCo allows at h = 2 ms).
+      **kwargs: ``ArmReach``'s (``torque_samples``, ``torque_margin``, ``seed``).
+    """
+
+    def __init__(self, normal=(1.0, 0.0, 0.0), gap_low: float = 0.005, gap_high: float = 0.05, q_noise: float = 0.1,
+                 c_range=(0.0, 0.2), dt_impact: float = 0.005, tau_imp_scale: float = 1.0, window: float = 0.02,
+                 impulse_limit: float = 2.0, contact_bonus: float = 1.0, ball_radius: float = 0.02, stop_fraction: float = 0.1,
+                 solref=(0.004, 1.0), friction: float = 1.0, **kwargs):
+        xml = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction))
+        super().__init__(xml, "ee", (0.2, -0.5, 0.1), (0.9, 0.5, 0.9), target="box", **kwargs)
+        nrm = np.asarray(normal, np.float64)
+        if nrm.shape != (3,) or not np.all(np.isfinite(nrm)) or np.linalg.norm(nrm) < 1e-9:
+            raise ValueError(f"WallStrike: normal must be a non-zero 3-vector, got {normal!r}")
+        self.normal = nrm / np.linalg.norm(nrm)
+        if not 0.0 < gap_low <= gap_high:
+            raise ValueError(f"WallStrike: need 0 < gap_low <= gap_high, got {gap_low}, {gap_high}")
+        self.gap = (float(gap_low), float(gap_high))
+        self.q_noise = float(q_noise)
+        c_max = _impact.check_restitution(*c_range)
+        del c_max
+        if not dt_impact > 0 or not window > 0 or not tau_imp_scale > 0:
+            raise ValueError(f"WallStrike: dt_impact, window, tau_imp_scale must be > 0, got {dt_impact}, {window}, {tau_imp_scale}")
+        self.impact = ImpactSpec(tuple(float(c) for c in c_range), float(dt_impact),
+                                 tau_imp_scale * self.tau_max, float(window))
+        self.h = float(self.mj_model.opt.timestep)
+        self.window_substeps = max(1, int(round(window / self.h)))
+        self.stop_fraction = float(stop_fraction)
+        self.impulse_limit = float(impulse_limit)
+        self.contact_bonus = float(contact_bonus)
+        self.ball_radius = float(ball_radius)
+        sim = mujoco.MjModel.from_xml_path(xml)
+        sim.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT | mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+        self.sys = mjx.put_model(sim)
+        self.ball = mujoco.mj_name2id(sim, mujoco.mjtObj.mjOBJ_GEOM, "ee_ball")
+        self.wall_quat = _quat_z_to(-self.normal)
+
+    @property
+    def observation_size(self) -> int:
+        return 3 * self.n + 6 + 1
+
+    # ---- reset --------------------------------------------------------------------------------
+    def reset(self, rng: jax.Array) -> State:
+        k_q, k_g = jax.random.split(rng)
+        q = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(k_q, (self.n,), jnp.float32, -self.q_noise, self.q_noise)
+        gap = jax.random.uniform(k_g, (), jnp.float32, *self.gap)
+        return self.reset_to_wall(q, jnp.zeros_like(q), gap)
+
+    @_mjx_broadcasting
+    def reset_to_wall(self, q, v, gap) -> State:
+        """A state at ``(q, v)`` with the wall ``gap`` [m] ahead of the ball's surface along ``normal``."""
+        nrm = jnp.asarray(self.normal, jnp.float32)
+        ball = self.ee_position(q)
+        wall = ball + (self.ball_radius + jnp.asarray(gap, jnp.float32)) * nrm
+        d = mjx.make_data(self.sys)
+        d = d.replace(qpos=self._f32(q), qvel=self._f32(v), mocap_pos=wall[None],
+                      mocap_quat=jnp.asarray(self.wall_quat, jnp.float32)[None])
+        d = mjx.fwd_position(self.sys, d)
+        zero = jnp.zeros((), jnp.float32)
+        metrics = {f"violation/{k}": zero for k in VIOLATION_KEYS}
+        metrics.update({f"count/{k}": zero for k in VIOLATION_KEYS})
+        metrics.update({"distance": zero, "accel_error": zero, "model_error": zero, "contact": zero,
+                        "impact/hit": zero, "impact/w": zero, "impact/tau": zero, "impact/tau_contact": zero, "impact/v_post": zero,
+                        "impulse": zero})
+        n = self.n
+        zn = jnp.zeros((n,), jnp.float32)
+        info = {"target": wall, "a_prev": zn, "gap": jnp.asarray(gap, jnp.float32),
+                "impact": {"hit": zero, "k": zero, "open": jnp.ones((), jnp.float32), "w": zero, "q_pre": zn, "v_pre": zn, "impulse": zn,
+                           "momentum": zn, "vmax": zn, "ball_prev": self._ball_center(d), "w_last": zero}}
+        return State(d, self._obs(d, wall), zero, zero, metrics, info)
+
+    def _ball_center(self, d):
+        return d.geom_xpos[self.ball]
+
+    def _obs(self, d, target):
+        ee = d.site_xpos[self.ee_site]
+        dist = jnp.sum((target - ee) * jnp.asarray(self.normal, jnp.float32))[None] - self.ball_radius
+        return jnp.concatenate([jnp.cos(d.qpos), jnp.sin(d.qpos), d.qvel, ee, target - ee, dist]).astype(jnp.float32)
+
+    # ---- model quantities for the shield ------------------------------------------------------
+    @_mjx_broadcasting
+    def ee_jacobian(self, q) -> jax.Array:
+        """Jacobian of the end-effector site position, ``(3, n)`` (forward-mode autodiff of MJX kinematics)."""
+        return jax.jacfwd(self.ee_position)(self._f32(q))
+
+    def impact_terms(self, q, v):
+        """``(M, J, normal)`` at ``(q, v)`` for ``jaxlimits.impact`` (single state)."""
+        M, _ = self.mass_and_bias(q, v)
+        return M, self.ee_jacobian(q), jnp.asarray(self.normal, jnp.float32)
+
+    # ---- physics with contacts ----------------------------------------------------------------
+    def _substep_contact(self, carry, a):
+        d, imp = carry
+        M, h, d = self.inverse_dynamics(d)  # fwd_position (collisions at this state) + fwd_velocity
+        tau = M @ a + h
+        d = d.replace(ctrl=tau)
+        d = mjx.fwd_acceleration(self.sys, mjx.fwd_actuation(self.sys, d))
+        d = _solve(self.sys, d)
+        in_contact = jnp.any(d._impl.contact.dist < 0.0)
+        frc = d.qfrc_constraint
+        d_act = d.qfrc_actuator
+        v_before, q_before = d.qvel, d.qpos
+        d = mjx.implicit(self.sys, d) if self._implicit else mjx.euler(self.sys, d)
+        ball = self._ball_center(mjx.kinematics(self.sys, d))
+        nrm = jnp.asarray(self.normal, jnp.float32)
+        # impact bookkeeping
+        first = (imp["hit"] == 0) & in_contact
+        w_now = jnp.sum((ball - imp["ball_prev"]) * nrm) / self.h
+        hit = jnp.where(in_contact, 1.0, imp["hit"])
+        # the window: from the first contact until the ball's normal velocity has dropped below
+        # stop_fraction of its impact value (the compression phase: the rigid model's impact), at
+        # most window_substeps; "open" flips to 0 once and stays there
+        w_hit = jnp.where(first, imp["w_last"], imp["w"])
+        stopped = (hit > 0) & (w_now <= self.stop_fraction * w_hit)
+        in_window = (hit > 0) & (imp["open"] > 0)
+        new = {
+            "hit": hit,
+            "k": imp["k"] + in_window.astype(jnp.float32),
+            "open": jnp.where(in_window & (stopped | (imp["k"] + 1 >= self.window_substeps)), 0.0, imp["open"]),
+            "w": w_hit,
+            "q_pre": jnp.where(first, q_before, imp["q_pre"]),
+            "v_pre": jnp.where(first, v_before, imp["v_pre"]),
+            "impulse": imp["impulse"] + jnp.where(in_window, frc * self.h, 0.0),
+            "momentum": imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),
+            "vmax": jnp.where(in_window | (hit > 0), jnp.maximum(imp["vmax"], jnp.abs(d.qvel)), imp["vmax"]),
+            "ball_prev": ball,
+            "w_last": w_now,
+        }
+        return (d, new), (d.qpos, d.qvel, d.qacc, tau, in_contact.astype(jnp.float32), frc * self.h)
+
+    @_mjx_broadcasting
+    def step_acc(self, state: State, a: jax.Array) -> State:
+        """One control step of ``frame_skip`` substeps with joint acceleration ``a`` held; contacts on."""
+        a = self._f32(a)
+        d0 = state.pipeline_state
+        imp0 = state.info["impact"]
+        (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
+            lambda c, _: self._substep_contact(c, a), (d0, imp0), None, length=self.frame_skip)
+        step_imp = jnp.sum(frcs, axis=0)
+        d = mjx.fwd_position(self.sys, d)
+        lim = self.limits
+        f = self._f32
+        zero = jnp.zeros((), jnp.float32)
+
+        def excess(x):
+            return jnp.maximum(jnp.max(x), zero)
+
+        viol = {
+            "position": excess(jnp.maximum(qs - f(lim.q_max)[None], f(lim.q_min)[None] - qs)),
+            "velocity": excess(jnp.abs(vs) - f(lim.v_max)[None]),
+            "acceleration": excess(jnp.abs(a) - f(lim.a_max)),
+            "jerk": excess(jnp.abs(a - state.info["a_prev"]) - f(lim.j_max) * self.dt) if lim.j_max is not None else zero,
+            "torque": excess(jnp.abs(taus) - f(self.tau_max)[None]),
+        }
+        model = jl.integrate_step(d0.qpos, d0.qvel, a, self.dt, "semi_implicit", self.frame_skip)
+        metrics = dict(state.metrics)
+        for k, x in viol.items():
+            metrics[f"violation/{k}"] = x
+            metrics[f"count/{k}"] = (x > 0).astype(jnp.float32)
+        target = state.info["target"]
+        nrm = f(self.normal)
+        ee = d.site_xpos[self.ee_site]
+        dist = jnp.maximum(jnp.sum((target - ee) * nrm) - self.ball_radius, 0.0)
+        metrics["distance"] = dist
+        metrics["accel_error"] = jnp.max(jnp.abs(accs - a[None]))
+        metrics["model_error"] = jnp.maximum(jnp.max(jnp.abs(d.qpos - model.q)), jnp.max(jnp.abs(d.qvel - model.v)))
+        in_contact = jnp.max(contact)
+        metrics["contact"] = in_contact
+        spec = self.impact
+        metrics["impact/hit"] = imp["hit"]
+        metrics["impact/w"] = imp["w"]
+        metrics["impact/tau"] = jnp.max(jnp.abs(imp["momentum"]) / spec.dt_impact / f(spec.tau_imp_max))
+        metrics["impact/tau_contact"] = jnp.max(jnp.abs(imp["impulse"]) / spec.dt_impact / f(spec.tau_imp_max))
+        metrics["impact/v_post"] = jnp.max(imp["vmax"] / f(lim.v_max))
+        # normal impulse delivered this step [N s]: the wall's impulse on the ball from the joint impulse,
+        # J^T p = sum(qfrc_constraint) h, solved in the least-squares sense (regularised)
+        Jee = self.ee_jacobian(d0.qpos)
+        p = jnp.linalg.solve(Jee @ Jee.T + 1e-6 * jnp.eye(3, dtype=Jee.dtype), Jee @ step_imp)
+        normal_impulse = jnp.maximum(jnp.sum(p * -nrm), 0.0)
+        metrics["impulse"] = normal_impulse
+        reward = -dist + self.contact_bonus * in_contact + jnp.minimum(normal_impulse, self.impulse_limit)
+        info = dict(state.info)
+        info["a_prev"] = a
+        info["impact"] = imp
+        return state.replace(pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero,
+                             metrics=metrics, info=info)
+
+
+def _solve(m, d):
+    from mujoco.mjx._src import solver
+
+    return solver.solve(m, d)
+
+
+def make_wall_strike(**kwargs) -> WallStrike:
+    """The Panda wall-strike env (see ``WallStrike``)."""
+    return WallStrike(**kwargs)
+
+
+# ---- a scripted striker (for measurements and tests) -------------------------------------------
+def strike_command(env: WallStrike, state: State, speed, gain: float = 20.0):
+    """Joint acceleration [rad/s^2] that drives the end effector along ``normal`` at ``speed`` [m/s].
+
+    Resolved-rate with a damped pseudo-inverse: ``a = J^+ gain (speed n̂ - J v) - gain N v`` (the
+    null-space motion is damped). Single state.
+    """
+    d = state.pipeline_state
+    J = env.ee_jacobian(d.qpos)
+    v = d.qvel
+    nrm = jnp.asarray(env.normal, jnp.float32)
+    err = speed * nrm - J @ v
+    JJt = J @ J.T + 1e-4 * jnp.eye(3, dtype=J.dtype)
+    pinv = J.T @ jnp.linalg.solve(JJt, jnp.eye(3, dtype=J.dtype))
+    null = jnp.eye(env.n, dtype=J.dtype) - pinv @ J
+    return gain * (pinv @ err) - gain * (null @ v)
+
+
+def strike_experiment(env: WallStrike, shields, batch: int, steps: int = 40, speed_range=(0.05, 1.5), seed: int = 0):
+    """Randomised strikes: each env draws a wall gap and a commanded speed, the scripted striker
+    (``strike_command``, scaled uniformly into ``[-a_max, a_max]``: the direction is kept) drives the end effector into the wall through its shield.
+
+    ``shields``: ``SafetyWrapper`` instances around ``env``; ``batch`` strikes per shield; one jit
+    (every shield is computed, each env keeps its own). Returns a dict name -> dict of per-strike
+    numpy arrays: ``speed`` (commanded), ``gap``, ``hit``, ``w`` (measured normal velocity at impact),
+    ``tau`` and ``v_post`` (measured over their bounds, see ``WallStrike``), ``cap`` (the shield's cap in
+    the last step before the impact; ``inf`` without ``impact=``), ``infeasible`` (steps flagged),
+    ``violation_position``/``violation_velocity``/``violation_torque`` (max over the episode),
+    ``q_pre``, ``v_pre``, ``impulse`` (joint impulse over the window [N m s]).
+    """
+    from jaxlimits.envs.safety import SafetyWrapper  # noqa: F401  (type of shields)
+
+    names = [w.name for w in shields]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate shield names {names}")
+    S = len(shields)
+    B = S * int(batch)
+    sid_np = np.repeat(np.arange(S), int(batch))
+
+    @jax.jit
+    def run(key):
+        k_r, k_s = jax.random.split(key)
+        states = jax.vmap(env.reset)(jax.random.split(k_r, int(batch)))
+        states = jax.tree.map(lambda x: jnp.concatenate([x] * S, axis=0), states)  # same walls for every shield
+        speeds = jax.random.uniform(k_s, (int(batch),), jnp.float32, *speed_range)
+        speeds = jnp.concatenate([speeds] * S)
+        sid = jnp.asarray(sid_np)
+        a_max = jnp.asarray(env.limits.a_max, jnp.float32)
+
+        def one(state, s_id, speed):
+            a_des = strike_command(env, state, speed)
+            a_des = a_des * jnp.minimum(1.0, jnp.min(a_max / jnp.maximum(jnp.abs(a_des), 1e-6)))  # scaled, not clipped
+            cands = [w._shield(state, a_des) for w in shields]
+            a_safe = jnp.stack([c[0] for c in cands])[s_id]
+            caps = jnp.stack([c[2].get("impact_cap", jnp.float32(jnp.inf)) for c in cands])[s_id]
+            infe = jnp.stack([c[2].get("impact_infeasible", jnp.float32(0.0)) for c in cands])[s_id]
+            ns = env.step_acc(state, a_safe)
+            return ns, caps, infe
+
+        def body(carry, _):
+            states, acc = carry
+            ns, cap, infe = jax.vmap(one)(states, sid, speeds)
+            m = ns.metrics
+            was_hit = states.info["impact"]["hit"] > 0
+            acc = {
+                "cap": jnp.where(was_hit, acc["cap"], cap),
+                "infeasible": acc["infeasible"] + infe,
+                "violation_position": jnp.maximum(acc["violation_position"], m["violation/position"]),
+                "violation_velocity": jnp.maximum(acc["violation_velocity"], m["violation/velocity"]),
+                "violation_torque": jnp.maximum(acc["violation_torque"], m["violation/torque"]),
+            }
+            return (ns, acc), None
+
+        z = jnp.zeros((B,), jnp.float32)
+        acc0 = {"cap": z, "infeasible": z, "violation_position": z, "violation_velocity": z, "violation_torque": z}
+        (final, acc), _ = jax.lax.scan(body, (states, acc0), None, length=steps)
+        m, imp = final.metrics, final.info["impact"]
+        out = dict(acc, speed=speeds, gap=final.info["gap"], hit=m["impact/hit"], w=m["impact/w"], tau=m["impact/tau"],
+                   tau_contact=m["impact/tau_contact"], v_post=m["impact/v_post"], q_pre=imp["q_pre"], v_pre=imp["v_pre"],
+                   impulse=imp["impulse"], momentum=imp["momentum"], window=imp["k"])
+        return out
+
+    out = jax.device_get(run(jax.random.PRNGKey(seed)))
+    return {name: {k: np.asarray(v)[sid_np == i] for k, v in out.items()} for i, name in enumerate(names)}
+
+
+def rigid_prediction(env: WallStrike, q_pre, v_pre, c: float):
+    """The rigid model's joint impulse ``M dq`` [N m s] (22) at the measured pre-impact states, (B, n)."""
+
+    @jax.jit
+    def pred(q, v):
+        M, J, nrm = jax.vmap(env.impact_terms)(q, v)
+        jump = _impact.impact_jump(M, J, nrm, v, c, env.impact.dt_impact)
+        return jump.dtau * env.impact.dt_impact, jump.w
+
+    return jax.device_get(pred(jnp.asarray(q_pre, jnp.float32), jnp.asarray(v_pre, jnp.float32)))
+
+
+__all__ = ["HOME", "ImpactSpec", "WallStrike", "make_wall_strike", "rigid_prediction", "strike_command",
+           "strike_experiment", "wall_xml"]
