@@ -228,7 +228,7 @@ def _as(x, dtype, name):
 
 
 @functools.partial(jax.jit, static_argnames=("max_iter",))
-def _core(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fix, alpha, t_step, max_iter):
+def _core(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fix, alpha, max_iter):
     """The whole batch (flat: ``J (B, m, n)``), one compiled program; ``None`` arguments are absent."""
     B, m, n = J.shape
     dtype = J.dtype
@@ -256,13 +256,13 @@ def _core(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fix, 
                        t_fix, auxi)
 
     dq, T, reached, res = jax.vmap(fin)(y, J, dr, dq_min, dq_max, t_lo, aux)
-    if t_step is not None:
-        steps = jnp.maximum(jnp.ceil(jax.lax.stop_gradient(T) / t_step), 1.0)
-        t_out = steps * t_step
-        steps = steps.astype(jnp.int32)
-    else:
-        t_out, steps = T, jnp.ones(T.shape, jnp.int32)
-    return TimeScaleResult(dq, t_out, T, steps, reached, res, conv)
+    return TimeScaleResult(dq, T, T, jnp.ones(T.shape, jnp.int32), reached, res, conv)
+
+
+def _round(out, t_step):
+    """Sec. IV, eq. 22: ``steps = ceil(T / T_s)``, ``t = steps T_s`` (derivative 0 w.r.t. ``T``)."""
+    steps = jnp.maximum(jnp.ceil(jax.lax.stop_gradient(out.t_opt) / t_step), 1.0)
+    return out._replace(t=steps * t_step, steps=steps.astype(jnp.int32))
 
 
 def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_max, dq_min, dq_max, A, b_min, b_max,
@@ -337,8 +337,10 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
             t_lo = jnp.maximum(t_lo, _safe_norm(drb) / jnp.asarray(r_norm_max, dtype))
     tf = None if t_fix is None else jnp.asarray(t_fix, dtype)
     ts = None if (t_step is None or t_fix is not None) else jnp.asarray(t_step, dtype)
-    out = _core(Jb, drb, v_min, v_max, w, lo_b, hi_b, A, b_min, b_max, t_lo, tf, alpha, ts,
+    out = _core(Jb, drb, v_min, v_max, w, lo_b, hi_b, A, b_min, b_max, t_lo, tf, alpha,
                 None if max_iter is None else int(max_iter))
+    if ts is not None:
+        out = _round(out, ts)
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
