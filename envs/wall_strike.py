@@ -15,13 +15,16 @@ first contact).
 Impact measurement (per episode, ``info['impact']``, from the MJX contact forces): at the first
 substep whose contact is active (penetration ``dist < 0``) the pre-impact joint velocity ``v_pre``,
 the position ``q_pre`` and the contact-normal velocity ``w`` (finite difference of the sphere's
-centre over the previous substep, ``normal`` component) are stored; over the following
-``window`` seconds the joint impulse ``sum(qfrc_constraint) h`` [N m s] and the largest ``|qvel|``
-are accumulated. ``metrics``: ``impact/hit`` (1 once hit), ``impact/w`` [m/s],
-``impact/tau`` = ``max_j |impulse_j| / dt_impact / tau_imp_max_j`` (measured impulsive torque over
-its bound: the rigid model's ``dtau = M dq / dt_impact`` is the same impulse over the same
-``dt_impact``), ``impact/v_post`` = ``max_j max_window |qvel_j| / v_max_j``; a ratio > 1 is a
-violation.
+centre over the previous substep, ``normal`` component) are stored. The impact window runs from
+there until the ball's normal velocity has dropped below ``stop_fraction`` (10 %) of ``w`` (the
+compression phase, the rigid model's impact), at most ``window`` seconds; with ``solref[0] = 2 h``
+it is one 2 ms substep in practice. Over it the contact joint impulse ``sum(qfrc_constraint) h``
+(``impulse``) and the joint momentum change ``sum(qfrc_constraint + qfrc_actuator - h) h``
+(``momentum``, = ``M dq`` of the rigid model) [N m s] are accumulated. ``metrics``: ``impact/hit``
+(1 once hit), ``impact/w`` [m/s], ``impact/tau`` = ``max_j |momentum_j| / dt_impact /
+tau_imp_max_j`` (the measured impulsive torque over its bound; the rigid model's ``dtau = M dq /
+dt_impact`` is the same quantity), ``impact/tau_contact`` (the same with the contact impulse alone),
+``impact/v_post`` = ``max_j max_{t >= impact} |qvel_j| / v_max_j``; a ratio > 1 is a violation.
 
 Reward: ``-distance`` to the wall before contact, ``+ contact_bonus`` per step in contact, and the
 normal impulse delivered in the step, clipped to ``impulse_limit`` [N s] per step.
