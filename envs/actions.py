@@ -11,6 +11,9 @@ into an acceleration command *before* the shield, so the guarantee is unchanged:
   shield then projects it into the safe interval, so far from ``v_des`` the arm accelerates as hard
   as the bounds allow and near it arrives exactly. Without a shield (``method="none"``) the raw
   command, up to ``2 v_max / dt``, is applied (and the motors saturate: counted).
+* ``"task_space"`` (``jaxlimits.envs.task_space.TaskSpaceActions``, default options): an
+  end-effector displacement, turned into joint motion by time-scaled IK (Suleiman et al.), then
+  tracked like ``"velocity"``.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import jax.numpy as jnp
 
 from jaxlimits.envs.arm import State, Wrapper
 
-ACTION_MODES = ("acceleration", "velocity")
+ACTION_MODES = ("acceleration", "velocity", "task_space")
 
 
 def velocity_to_acc(v_des, v, dt):
@@ -55,6 +58,10 @@ def with_action_mode(env, mode: str):
     """``env`` (a shielded env) with the policy's actions meaning ``mode`` (one of ``ACTION_MODES``)."""
     if mode not in ACTION_MODES:
         raise ValueError(f"action mode must be one of {ACTION_MODES}, got {mode!r}")
+    if mode == "task_space":
+        from jaxlimits.envs.task_space import TaskSpaceActions  # imports this module
+
+        return TaskSpaceActions(env)
     return VelocityActions(env) if mode == "velocity" else env
 
 

@@ -55,6 +55,9 @@ def test_velocity_to_acc_and_mode_errors():
     assert not np.all(np.isfinite(velocity_to_acc(jnp.asarray([np.nan, 0.0]), jnp.zeros(2), 0.01)))
     with pytest.raises(ValueError, match="action mode"):
         with_action_mode(None, "torque")
+    from jaxlimits.envs.task_space import TaskSpaceActions
+
+    assert isinstance(with_action_mode(SafetyWrapper(make_planar_reach(torque_samples=0)), "task_space"), TaskSpaceActions)
 
 
 def test_ik_observation_is_the_damped_least_squares_step(env):

@@ -11,7 +11,8 @@ only, so differentiation does not double-count).
 The run folder is the same as PPO's (``config.json``, ``metrics.jsonl``, ``params.msgpack``,
 ``summary.json``); ``metrics.jsonl`` has one row per APG evaluation with Brax's evaluation
 figures (``eval/episode_reward``, ``eval/episode_distance``...) and the running training tally,
-and ``summary.json``'s ``final_eval`` is ``evaluate.Evaluator``'s row on ``num_eval_envs`` episodes.
+and ``summary.json``'s ``final_eval`` is the last of those rows (Brax's evaluator, deterministic
+policy, ``num_eval_envs`` episodes).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ with warnings.catch_warnings():
     from brax.training.agents.apg import networks as apg_networks
     from brax.training.agents.apg import train as brax_apg_train
 
-from jaxlimits.training import checkpoint, evaluate, tally
+from jaxlimits.training import checkpoint, tally
 from jaxlimits.training.brax_ppo import env_from_config
 from jaxlimits.training.config import RunConfig, from_dict
 
@@ -88,16 +89,18 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
                       f"eval reward {row.get('eval/episode_reward', float('nan')):8.2f} | "
                       f"training pos+vel violations {viol}", file=sys.stderr, flush=True)
 
-        with warnings.catch_warnings():  # brax 0.14.2's APG still calls it (jax 0.9 deprecates it)
-            warnings.filterwarnings("ignore", "jax.device_put_replicated is deprecated", DeprecationWarning)
+        # brax 0.14.2's APG still calls jax.device_put_replicated and optax.global_norm (both
+        # deprecated in the pinned versions), and its observation normaliser relies on rank
+        # promotion (our tests make each an error)
+        with warnings.catch_warnings(), jax.numpy_rank_promotion("allow"):
+            for message in ("jax.device_put_replicated is deprecated", "optax.global_norm is deprecated"):
+                warnings.filterwarnings("ignore", message, DeprecationWarning)
             make_policy, params, _ = _train_apg(env, cfg, counts, updates, progress)
     wall = time.perf_counter() - t0
 
     checkpoint.save(run_dir / "params.msgpack", params, meta=cfg.to_dict())
-    final = evaluate.evaluate(env, _deterministic(make_policy), params, episodes=a.num_eval_envs,
-                              episode_length=cfg.episode_length, action_repeat=a.action_repeat, seed=10_000)
     summary = {"config": cfg.to_dict(), "wall_s": wall, "training": counts.as_dict(),
-               "env_steps_per_s": counts.env_steps / wall, "final_eval": final}
+               "env_steps_per_s": counts.env_steps / wall, "final_eval": rows[-1] if rows else {}}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 

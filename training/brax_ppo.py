@@ -107,10 +107,11 @@ class _Progress:
         self.file.write(json.dumps(row) + "\n")
         self.file.flush()
         if self.show:
-            frac = min(step / self.cfg.num_timesteps, 1.0)
+            total = total_env_steps(self.cfg)
+            frac = min(step / total, 1.0)
             bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
             viol = row["train/violations/position"] + row["train/violations/velocity"]
-            print(f"[{self.cfg.shield:>9}] [{bar}] {step:>10,d}/{self.cfg.num_timesteps:,d} steps "
+            print(f"[{self.cfg.shield:>9}] [{bar}] {step:>10,d}/{total:,d} steps "
                   f"{row['wall_s']:7.1f} s | eval return {ev['return_mean']:8.2f} success {ev['success_rate']:.2f} | "
                   f"training pos+vel violations {viol}", file=sys.stderr, flush=True)
 

@@ -14,7 +14,7 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ENVS = ("planar_reach", "panda_reach")
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
-ACTION_MODES = ("acceleration", "velocity")  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
+ACTION_MODES = ("acceleration", "velocity", "task_space")  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,24 @@ def scripted_policy(kind: str, n: int):
     return policy
 
 
+def ik_reference_policy(n: int, v_max, gain: float = 10.0):
+    """A scripted reach controller, the reference a learned policy is compared with.
+
+    For envs with velocity actions and the IK observation (``action_mode="velocity"``,
+    ``ArmReach(ik_observation=True)``): joint velocity ``gain * dq`` with ``dq`` the damped
+    least-squares step toward the target read from the observation (its last ``n`` entries), i.e.
+    ``action = clip(gain * dq / v_max, -1, 1)``. ``gain`` [1/s]. It is greedy: it can stall at a
+    joint limit when the target needs a detour.
+    """
+    v_max = jnp.asarray(v_max, jnp.float32)
+
+    def policy(params, obs, key, t):
+        del params, key, t
+        return jnp.clip(gain * obs[-n:] / v_max, -1.0, 1.0)
+
+    return policy
+
+
 def _episode(env, policy, params, key, episode_length: int, action_repeat: int = 1):
     """One episode of ``episode_length`` env steps, the policy acting every ``action_repeat`` of them.
 

@@ -4,7 +4,9 @@
 seed, evaluates each trained policy with its own shield over ``cfg.eval_episodes`` parallel episodes
 (``evaluate.Evaluator``), and writes to ``out``: ``runs/<shield>/`` (each run's folder),
 ``results.json`` (training totals and evaluation rows), ``results.md`` (the table) and
-``training_curves.png``. It prints the comparison table.
+``training_curves.png``. It prints the comparison table. With velocity actions and the IK
+observation it also evaluates ``evaluate.ik_reference_policy`` (a greedy scripted reach controller,
+viability shield, same episodes) as the reference row a learned policy is measured against.
 """
 
 from __future__ import annotations
@@ -32,6 +34,11 @@ def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool 
                                 action_repeat=cfg.action_repeat, seed=cfg.seed + 1)
         results["shields"][shield] = {"training": summary["training"], "training_wall_s": summary["wall_s"],
                                       "training_env_steps_per_s": summary["env_steps_per_s"], "evaluation": row}
+    if cfg.action_mode == "velocity" and cfg.ik_observation:
+        env = brax_ppo.env_from_config(cfg.override(shield="viability"))
+        policy = evaluate.ik_reference_policy(env.action_size, env.limits.v_max)
+        results["reference"] = evaluate.evaluate(env, policy, None, episodes=cfg.eval_episodes,
+                                                 episode_length=cfg.episode_length, seed=cfg.seed + 1)
     results["wall_s"] = time.perf_counter() - t0
     table = format_results(results)
     print(table)
@@ -54,5 +61,11 @@ def format_results(results: dict) -> str:
             f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {e['episodes']:,} "
             f"| {e['success_rate']:.3f} | {e['return_mean']:.2f} "
             f"| {e['violations/position']:,} / {e['violations/velocity']:,} "
+            f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |")
+    if "reference" in results:
+        e = results["reference"]
+        lines.append(
+            f"| reference: scripted IK, viability | – | – | – | {e['episodes']:,} | {e['success_rate']:.3f} "
+            f"| {e['return_mean']:.2f} | {e['violations/position']:,} / {e['violations/velocity']:,} "
             f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |")
     return "\n".join(lines)
