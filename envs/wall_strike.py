@@ -344,8 +344,18 @@ def strike_experiment(env: WallStrike, shields, batch: int, steps: int = 40, spe
     S = len(shields)
     B = S * int(batch)
     sid_np = np.repeat(np.arange(S), int(batch))
+    cache_key = (env, tuple(shields), int(batch), int(steps), tuple(float(x) for x in speed_range))
+    run = _RUNS.get(cache_key)
+    if run is None:
+        run = _RUNS[cache_key] = jax.jit(_make_run(env, shields, batch, steps, speed_range, S, B, sid_np))
+    out = jax.device_get(run(jax.random.PRNGKey(seed)))
+    return {name: {k: np.asarray(v)[sid_np == i] for k, v in out.items()} for i, name in enumerate(names)}
 
-    @jax.jit
+
+_RUNS = {}  # compiled strike experiments, per (env, shields, batch, steps, speed_range): one compilation per shape
+
+
+def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
     def run(key):
         k_r, k_s = jax.random.split(key)
         states = jax.vmap(env.reset)(jax.random.split(k_r, int(batch)))
@@ -388,8 +398,7 @@ def strike_experiment(env: WallStrike, shields, batch: int, steps: int = 40, spe
                    impulse=imp["impulse"], momentum=imp["momentum"], window=imp["k"])
         return out
 
-    out = jax.device_get(run(jax.random.PRNGKey(seed)))
-    return {name: {k: np.asarray(v)[sid_np == i] for k, v in out.items()} for i, name in enumerate(names)}
+    return run
 
 
 def rigid_prediction(env: WallStrike, q_pre, v_pre, c: float):
