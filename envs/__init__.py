@@ -17,6 +17,8 @@ _EXPORTS = {
     "SafetyWrapper": "jaxlimits.envs.safety",
     "adversarial_rollout": "jaxlimits.envs.safety",
     "TaskSpaceActions": "jaxlimits.envs.task_space",
+    "WallStrike": "jaxlimits.envs.wall_strike",
+    "make_wall_strike": "jaxlimits.envs.wall_strike",
     "ArmEnv": "jaxlimits.envs.gym",
     "ArmVectorEnv": "jaxlimits.envs.gym",
     "register_envs": "jaxlimits.envs.gym",
