@@ -126,8 +126,7 @@ class WallStrike(ArmReach):
             raise ValueError(f"WallStrike: need 0 < gap_low <= gap_high, got {gap_low}, {gap_high}")
         self.gap = (float(gap_low), float(gap_high))
         self.q_noise = float(q_noise)
-        c_max = _impact.check_restitution(*c_range)
-        del c_max
+        _impact.check_restitution(*c_range)  # validates eagerly
         if not dt_impact > 0 or not window > 0 or not tau_imp_scale > 0:
             raise ValueError(f"WallStrike: dt_impact, window, tau_imp_scale must be > 0, got {dt_impact}, {window}, {tau_imp_scale}")
         self.impact = ImpactSpec(tuple(float(c) for c in c_range), float(dt_impact),
@@ -336,8 +335,6 @@ def strike_experiment(env: WallStrike, shields, batch: int, steps: int = 40, spe
     ``violation_position``/``violation_velocity``/``violation_torque`` (max over the episode),
     ``q_pre``, ``v_pre``, ``impulse`` (joint impulse over the window [N m s]).
     """
-    from jaxlimits.envs.safety import SafetyWrapper  # noqa: F401  (type of shields)
-
     names = [w.name for w in shields]
     if len(set(names)) != len(names):
         raise ValueError(f"duplicate shield names {names}")

@@ -133,7 +133,6 @@ def test_speed_cap_brute_force_over_joint_velocities(x64):
     M, J, nrm, q, _ = problem(300)
     v_ref = np.zeros(N)
     cap = float(_cap(M, J, nrm, q, v_ref, 0.0).cap)
-    g = J.T @ nrm
     for _ in range(300):
         v = rng.normal(size=N)
         w = nrm @ J @ v
@@ -142,7 +141,6 @@ def test_speed_cap_brute_force_over_joint_velocities(x64):
         ref = dense_jump(M, J, nrm, v, C, DTI)
         ok = dense_ok(M, J, nrm, q, v_ref, ref["dq"], ref["dtau"], tol=1e-9)
         assert ok == (w <= cap * (1 + 1e-9)), (w, cap)
-    del g
 
 
 def test_v_pre_range_is_conservative(x64):
