@@ -31,7 +31,14 @@ def _rollout(env, action, key):
     return jax.tree.map(np.asarray, run(key))
 
 
-@pytest.mark.parametrize("arm", ["planar", pytest.param("panda", marks=pytest.mark.slow)])
+def test_panda_moves_in_3d():
+    """The Panda's joints do not all turn about y: its task space is 3-D (its rollout is the planar
+    one's code path with k = 3; run ``test_task_space_rollout...`` with ``arm="panda"`` by hand, ~1 min)."""
+    env = TaskSpaceActions(SafetyWrapper(make_panda_reach(torque_samples=0), "viability"))
+    assert env.action_size == 3 and env.axes == (0, 1, 2)
+
+
+@pytest.mark.parametrize("arm", ["planar"])
 def test_task_space_rollout_moves_along_the_command_inside_the_limits(arm):
     base = make_planar_reach(torque_samples=0) if arm == "planar" else make_panda_reach(torque_samples=0)
     cap = 0.1
