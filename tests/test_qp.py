@@ -360,3 +360,82 @@ def test_jit_eager_vmap_agree_and_broadcast(dtype):
 def test_bad_inputs_raise_eagerly(args, kwargs, match):
     with pytest.raises(ValueError, match=match):
         jl.project_box(*args, **kwargs)
+
+
+# ------------------------------------------------------------- redundant, parallel and far-away rows
+
+_FAR_G = [0.947, -0.203, 0.249, -0.947, 0.203, -0.249, 0.993, -0.993, 0.947, -0.203, 0.249, -0.947, 0.203, -0.249]
+_FAR_H = [0.593, 0.659, 0.276, 0.407, 0.341, 0.724, 0.928, 0.872, 3995, 7686, 8899, 7833, 4413, 8576]
+
+
+def test_far_redundant_rows_do_not_make_a_feasible_problem_infeasible(dtype):
+    """Regression: x_des = 0 meets every row and the box, yet the far rows' rounding (h ~ 1e4) in
+    the least-violation stage made it look infeasible and returned the corner x = 10 as converged."""
+    G, h = jnp.asarray(_FAR_G, dtype)[:, None], jnp.asarray(_FAR_H, dtype)
+    res = jl.solve_box_qp(jnp.zeros(1, dtype), -10.0, 10.0, G=G, h=h)
+    assert float(res.x[0]) == 0.0
+    assert bool(res.converged) and not bool(res.infeasible) and float(res.violation) == 0.0
+
+
+def _redundant_rows(rng, batch):
+    """n = 7 problems whose effective size is 1..7 (the rest flat at 0, outside every row), each with
+    3 rows and copies of them: an exact duplicate, a scaled parallel row, an opposite row (a slab,
+    possibly empty), a far-away copy and far-away random rows (h ~ 1e3..1e4)."""
+    n = 7
+    xd, lo, hi, W = _problems(rng, batch, n, 1e2)
+    G0 = rng.normal(size=(batch, 3, n))
+    k = 1 + np.arange(batch) % n
+    act = np.arange(n)[None, :] < k[:, None]
+    lo, hi, xd = np.where(act, lo, 0.0), np.where(act, hi, 0.0), np.where(act, xd, 1.0)
+    W = np.where(act[:, :, None] & act[:, None, :], W, 0.0) + np.where(~act, 1.0, 0.0)[:, :, None] * np.eye(n)
+    G0 = np.where(act[:, None], G0, 0.0)
+    gmin = np.sum(np.minimum(G0 * lo[:, None], G0 * hi[:, None]), -1)
+    spread = np.sum(np.abs(G0) * (hi - lo)[:, None], -1)
+    h0 = gmin + rng.uniform(-0.05, 0.6, size=(batch, 3)) * spread
+    c = rng.uniform(0.3, 3.0, size=(batch, 1))
+    far = rng.uniform(1e3, 1e4, size=(batch, 3))
+    G = np.concatenate([G0, G0[:, :1], c[:, :, None] * G0[:, 1:2], -G0[:, :1], G0[:, 2:3],
+                        np.where(act[:, None], rng.normal(size=(batch, 1, n)), 0.0), -G0[:, 1:2]], 1)
+    h = np.concatenate([h0, h0[:, :1], c * (h0[:, 1:2] + rng.uniform(-0.1, 0.5, size=(batch, 1)) * spread[:, 1:2]),
+                        -h0[:, :1] + rng.uniform(-0.2, 1.0, size=(batch, 1)) * spread[:, :1], far], 1)
+    return xd, lo, hi, W, G, h, k
+
+
+def _essential_rows(lo, hi, G, h):
+    """The same feasible set with fewer rows (for the enumeration): rows no box point reaches dropped,
+    of rows with the same direction the tightest kept."""
+    keep = np.sum(np.maximum(G * lo, G * hi), 1) > h - 1e-9 * (1 + np.abs(h))
+    G, h = G[keep], h[keep]
+    nrm = np.linalg.norm(G, axis=1)
+    U, c = G / nrm[:, None], h / nrm
+    out = []
+    for j in np.argsort(c):
+        if not any(np.max(np.abs(U[j] - U[k])) < 1e-12 for k in out):
+            out.append(j)
+    return G[out], h[out]
+
+
+def test_redundant_parallel_and_far_rows_match_reference(x64):
+    """Random duplicate / parallel / opposite / far-away rows, 1..7 variables, vs SciPy (feasibility:
+    linprog; least violation: lsq_linear) and the enumeration (on the essential rows)."""
+    rng = np.random.default_rng(21)
+    batch = 96  # > the fast path's hand-off count: both paths run
+    xd, lo, hi, W, G, h, k = _redundant_rows(rng, batch)
+    res = jl.solve_box_qp(xd, lo, hi, W, G=G, h=h)
+    _assert_in_box(res.x, lo, hi)
+    x, conv = np.asarray(res.x), np.asarray(res.converged)
+    assert conv.mean() >= 0.95
+    feasible = np.array([ref.rows_feasible(lo[i], hi[i], G[i], h[i]) for i in range(batch)])
+    assert 0.1 < feasible.mean() < 0.9
+    np.testing.assert_array_equal(res.infeasible, ~feasible)
+    assert float(np.max(np.asarray(res.violation)[feasible])) <= 1e-12
+    for i in range(batch):
+        s = slice(0, k[i])
+        r = np.zeros(G.shape[1])
+        if not feasible[i]:
+            r, _ = ref.least_violation(lo[i, s], hi[i, s], G[i, :, s], h[i])
+            np.testing.assert_allclose(np.maximum(G[i] @ x[i] - h[i], 0.0), r, atol=1e-9)
+        Ge, he = _essential_rows(lo[i, s], hi[i, s], G[i, :, s], h[i] + r + (0 if feasible[i] else 1e-11 * (1 + np.abs(h[i]))))
+        xr = ref.solve(xd[i, s], lo[i, s], hi[i, s], W[i, s, s], Ge, he)
+        err = np.max(np.abs(x[i, s] - xr)) / (1.0 + np.max(np.abs(xr)))
+        assert not conv[i] or err <= (1e-8 if feasible[i] else 1e-6), (i, err)

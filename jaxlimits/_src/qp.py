@@ -324,15 +324,28 @@ def _fallback_one(x_des, lower, upper, W, G, h, x_warm, max_iter):
     relax = jnp.bool_(False)
     pin_l, pin_u, drop, eq = nob, nob, jnp.zeros((m,), bool), jnp.zeros((m,), bool)
     lo, hi, Ge, he = lower, upper, G, h
+    lv_ok = jnp.bool_(True)
+    rr = jnp.zeros((m,), W.dtype)
     if m >= 2:
-        zfree, zup, _ = qp_bvls.bvls(lower, upper, G, h, 4 * (n + m) + 10)
-        r, xbar = qp_bvls.residual(lower, upper, G, h, zfree, zup)
-        relax = jnp.any(r > 30.0 * tols[2])
+        zfree, zup, zb, _ = qp_bvls.bvls(lower, upper, G, h, 4 * (n + m) + 10)
+        r, _ = qp_bvls.residual(lower, upper, G, h, zfree, zup)
+        xbar = zb[:n]
+        # infeasible only with a certificate: gap > 0 is impossible if some box point meets every
+        # row (a residual r of mere rounding never passes it)
+        gap, err = qp_bvls.certificate(lower, upper, G, h, r)
+        relax = jnp.any(r > 30.0 * tols[2]) & (gap > 16.0 * err)
+        rr = jnp.where(relax, r, 0.0)
+        # r is the least violation to rounding: ||r||^2 - gap = sum_i |q_i| dist(x_i, its bound)
+        # at the BVLS point, rounding-level where q_i ~ 0 (q_i's rounding: the rows' own scales)
+        s = qp_bvls.row_scale(lower, upper, G, h)
+        eps = jnp.finfo(W.dtype).eps
+        lv_tol = 1e3 * (err + eps * (n + m) * jnp.sum(jnp.where(r > 0, s * s, 0.0)))
+        lv_ok = ~relax | (r @ r - gap <= lv_tol)
         pin_l, pin_u, drop, eq = _least_violation_split(lower, upper, G, h, r, relax, tols)
         lo = jnp.where(pin_u, upper, lower)
         hi = jnp.where(pin_l, lower, upper)
         Ge = jnp.where(drop[:, None], 0.0, G)
-        he = jnp.where(drop, 0.0, h + jnp.where(relax, r, 0.0))
+        he = jnp.where(drop, 0.0, h + rr)
         start = jnp.clip(xbar, lo, hi)
     elif m == 1:
         start = _feasible_start(jnp.clip(x_warm, lower, upper), lower, upper, G, h)
@@ -341,7 +354,11 @@ def _fallback_one(x_des, lower, upper, W, G, h, x_warm, max_iter):
     tols = _scales(x_des, lo, hi, W, Ge, he)
     x, lam, done, it = _active_set_solve(x_des, lo, hi, W, Ge, he, eq, start, max_iter, tols)
     x = jnp.clip(x, lo, hi)
-    ok = done & _kkt_ok(x, x_des, lo, hi, W, Ge, he, lam, tols, eq)
+    ok = done & _kkt_ok(x, x_des, lo, hi, W, Ge, he, lam, tols, eq) & lv_ok
+    if m:  # every row as given (dropped and pinned ones too) holds at x, relaxed by r* if infeasible
+        tol_h = _scales(x_des, lower, upper, W, G, h + rr)[2]
+        slack = 30.0 * tol_h + 32.0 * jnp.finfo(W.dtype).eps * (jnp.abs(G) @ jnp.abs(x))
+        ok = ok & jnp.all(G @ x - (h + rr) <= slack)
     return x, lam, ok, it, relax, zfree, zup, pin_l, pin_u, drop, eq
 
 
