@@ -8,6 +8,9 @@ import of this module):
     gymnasium.make("jaxlimits/PlanarReach-v0", shield="none")
 
 ``shield`` is one of ``SafetyWrapper``'s methods; ``torque_box=True`` adds its per-state torque box.
+``action_mode`` (``"acceleration"`` default, ``"velocity"``, ``"task_space"``: ``jaxlimits.envs.actions``),
+``ik_observation`` and ``precision_reward`` (``ArmReach``'s options) choose the task as in the Brax
+configs (``docs/training.md``).
 The reach task has no terminal state (``terminated`` is always False); episodes end by truncation
 after ``max_episode_steps`` (``TimeLimit`` from the registration for the single env; the vector env
 truncates itself and resets in the same step, ``autoreset_mode = SAME_STEP``, as Gymnasium's
@@ -41,6 +44,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
+from jaxlimits.envs.actions import with_action_mode
 from jaxlimits.envs.arm import VIOLATION_KEYS, make_panda_reach, make_planar_reach
 from jaxlimits.envs.safety import SafetyWrapper
 
@@ -48,15 +52,18 @@ ARMS = {"planar": make_planar_reach, "panda": make_panda_reach}
 
 
 @functools.cache
-def _arm(name: str):
-    return ARMS[name]()
+def _arm(name: str, ik_observation: bool = False, precision_reward: float = 0.0):
+    return ARMS[name](ik_observation=ik_observation, precision_reward=precision_reward)
 
 
 @functools.cache
-def _batched(arm: str, shield: str, torque_box: bool = False):
-    """Jitted ``reset(keys)`` and ``step(states, actions)`` for a batch of shielded envs (cached)."""
-    wrapped = SafetyWrapper(_arm(arm), shield, torque_box=torque_box)
-    return jax.jit(jax.vmap(wrapped.reset)), jax.jit(jax.vmap(wrapped.step)), wrapped
+def _batched(arm: str, shield: str, torque_box: bool = False, action_mode: str = "acceleration",
+             ik_observation: bool = False, precision_reward: float = 0.0):
+    """Jitted ``reset(keys)`` and ``step(states, actions)`` for a batch of shielded envs, the
+    ``SafetyWrapper`` and the outer env (with the action mode) (cached)."""
+    shielded = SafetyWrapper(_arm(arm, bool(ik_observation), float(precision_reward)), shield, torque_box=torque_box)
+    outer = with_action_mode(shielded, action_mode)
+    return jax.jit(jax.vmap(outer.reset)), jax.jit(jax.vmap(outer.step)), shielded, outer
 
 
 def _infos(states) -> dict:
@@ -74,26 +81,29 @@ def _infos(states) -> dict:
 class _Core:
     """Shared state handling for ``ArmEnv`` and ``ArmVectorEnv``."""
 
-    def _setup(self, arm: str, shield: str, num_envs: int, render_mode, width: int, height: int, torque_box: bool = False):
+    def _setup(self, arm: str, shield: str, num_envs: int, render_mode, width: int, height: int, torque_box: bool = False,
+               action_mode: str = "acceleration", ik_observation: bool = False, precision_reward: float = 0.0):
         if arm not in ARMS:
             raise ValueError(f"arm must be one of {tuple(ARMS)}, got {arm!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self._reset_fn, self._step_fn, self._wrapped = _batched(arm, shield, bool(torque_box))
+        self._reset_fn, self._step_fn, self._wrapped, outer = _batched(
+            arm, shield, bool(torque_box), action_mode, bool(ik_observation), float(precision_reward))
         env = self._wrapped.env
         self.arm, self.shield = arm, shield
-        self._n = env.n
         self._B = num_envs
         self._states = None
         self._key = jax.random.PRNGKey(0)
         self._render_size = (height, width)
         self._renderer = None
         self._mjd = None
-        # [cos q, sin q, qvel, ee, target - ee]; finite bounds wide enough for unshielded runaways
+        # [cos q, sin q, qvel, ee, target - ee (, ik step)]; finite bounds wide enough for unshielded runaways
         n = env.n
-        high = np.concatenate([np.ones(2 * n), np.full(n, 1e4), np.full(6, 10.0)]).astype(np.float32)
+        parts = [np.ones(2 * n), np.full(n, 1e4), np.full(6, 10.0)] + ([np.full(n, 1e3)] if env.ik_observation else [])
+        high = np.concatenate(parts).astype(np.float32)
         obs_space = spaces.Box(-high, high, (env.observation_size,), np.float32)
-        act_space = spaces.Box(-1.0, 1.0, (env.n,), np.float32)
+        self._n = outer.action_size
+        act_space = spaces.Box(-1.0, 1.0, (outer.action_size,), np.float32)
         return env, obs_space, act_space
 
     def _do_reset(self, seed):
@@ -128,8 +138,10 @@ class ArmEnv(_Core, gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
 
     def __init__(self, arm: str = "planar", shield: str = "viability", render_mode=None, width: int = 240, height: int = 240,
-                 torque_box: bool = False):
-        env, self.observation_space, self.action_space = self._setup(arm, shield, 1, render_mode, width, height, torque_box)
+                 torque_box: bool = False, action_mode: str = "acceleration", ik_observation: bool = False,
+                 precision_reward: float = 0.0):
+        env, self.observation_space, self.action_space = self._setup(arm, shield, 1, render_mode, width, height, torque_box,
+                                                                     action_mode, ik_observation, precision_reward)
         self.render_mode = render_mode
         self.metadata = dict(self.metadata, render_fps=int(round(1.0 / env.dt)))
 
@@ -163,8 +175,10 @@ class ArmVectorEnv(_Core, VectorEnv):
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.SAME_STEP}
 
     def __init__(self, num_envs: int, arm: str = "planar", shield: str = "viability", max_episode_steps: int = 500,
-                 render_mode=None, width: int = 240, height: int = 240, torque_box: bool = False):
-        env, obs1, act1 = self._setup(arm, shield, num_envs, render_mode, width, height, torque_box)
+                 render_mode=None, width: int = 240, height: int = 240, torque_box: bool = False,
+                 action_mode: str = "acceleration", ik_observation: bool = False, precision_reward: float = 0.0):
+        env, obs1, act1 = self._setup(arm, shield, num_envs, render_mode, width, height, torque_box, action_mode,
+                                      ik_observation, precision_reward)
         self.num_envs = num_envs
         self.single_observation_space, self.single_action_space = obs1, act1
         self.observation_space = gymnasium.vector.utils.batch_space(obs1, num_envs)

@@ -136,3 +136,22 @@ def test_make_vec(venv):
     obs, r, term, trunc, info = sync.step(np.zeros((2, 3), np.float32))
     assert obs.shape == (2, 15) and info["violation"]["position"].shape == (2,)
     sync.close()
+
+
+def test_velocity_actions_and_ik_observation_through_gymnasium():
+    """The Brax configs' task options reach the Gymnasium front: spaces follow them, steps obey them."""
+    env = gymnasium.make("jaxlimits/PlanarReach-v0", shield="viability", action_mode="velocity", ik_observation=True,
+                         precision_reward=1.0, max_episode_steps=20)
+    n = 3
+    assert env.observation_space.shape == (4 * n + 6,) and env.action_space.shape == (n,)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    for _ in range(5):
+        obs, reward, terminated, truncated, info = env.step(np.ones(n, np.float32))
+        assert env.observation_space.contains(obs) and np.isfinite(reward)
+        assert all(info["violation"][k] == 0.0 for k in ("position", "velocity", "acceleration", "torque"))
+    # velocity actions: the joints speed up toward +v_max (as hard as the shield allows)
+    assert np.all(info["qvel"] > 0)
+    with pytest.raises(ValueError, match="action mode"):
+        jgym.ArmEnv(action_mode="torque")
+    env.close()

@@ -19,14 +19,14 @@ import numpy as np
 from jaxlimits.envs.arm import VIOLATION_KEYS
 
 
-def _make_env(shield: str, arm: str, max_episode_steps: int):
+def _make_env(shield: str, arm: str, max_episode_steps: int, **task):
     import gymnasium
 
     import jaxlimits.envs.gym as jgym
 
     jgym.register_envs()
     name = {"planar": "jaxlimits/PlanarReach-v0", "panda": "jaxlimits/PandaReach-v0"}[arm]
-    return gymnasium.make(name, shield=shield, max_episode_steps=max_episode_steps)
+    return gymnasium.make(name, shield=shield, max_episode_steps=max_episode_steps, **task)
 
 
 class _ViolationCounter:
@@ -53,11 +53,12 @@ ALGOS = ("ppo", "sac")
 
 def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *, algo: str = "ppo",
           arm: str = "planar", max_episode_steps: int = 200, seed: int = 0, n_steps: int = 512,
-          batch_size: int = 64, learning_starts: int = 1000):
+          batch_size: int = 64, learning_starts: int = 1000, **task):
     """Train SB3 PPO or SAC; returns ``(model, metrics)`` and writes ``out`` if given.
 
     ``n_steps`` is PPO's rollout length, ``learning_starts`` SAC's number of random steps before
-    its first update; ``batch_size`` is either's minibatch.
+    its first update; ``batch_size`` is either's minibatch. ``task`` goes to the Gymnasium env
+    (``action_mode``, ``ik_observation``, ``precision_reward``: see ``jaxlimits.envs.gym``).
     """
     import torch
     from stable_baselines3 import PPO, SAC
@@ -74,14 +75,14 @@ def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *,
             counter.update(self.locals["infos"])
             return True
 
-    env = Monitor(_make_env(shield, arm, max_episode_steps))
+    env = Monitor(_make_env(shield, arm, max_episode_steps, **task))
     common = dict(batch_size=batch_size, seed=seed, device="cpu", verbose=0, policy_kwargs={"net_arch": [64, 64]})
     if algo == "ppo":
         model = PPO("MlpPolicy", env, n_steps=n_steps, **common)
     else:
         model = SAC("MlpPolicy", env, learning_starts=learning_starts, **common)
     model.learn(total_timesteps=total_timesteps, callback=Callback())
-    metrics = {"algo": algo, "shield": shield, "arm": arm, "env_steps": counter.env_steps, "episode_returns": counter.episode_returns,
+    metrics = {"algo": algo, "shield": shield, "arm": arm, "task": task, "env_steps": counter.env_steps, "episode_returns": counter.episode_returns,
                **{f"violations/{k}": v for k, v in counter.counts.items()},
                **{f"max_violation/{k}": v for k, v in counter.maxes.items()}}
     if out is not None:
