@@ -282,6 +282,21 @@ class ArmReach(Env):
         d0 = state.pipeline_state
         d, (qs, vs, accs, taus) = jax.lax.scan(lambda dd, _: self._substep(dd, a), d0, None, length=self.frame_skip)
         d = mjx.fwd_position(self.sys, d)  # site positions at the new state, for the observation
+        metrics = self._limit_metrics(state, d, a, qs, vs, accs, taus)
+        target = state.info["target"]
+        dist = jnp.linalg.norm(d.site_xpos[self.ee_site] - target)
+        metrics["distance"] = dist
+        zero = jnp.zeros((), jnp.float32)
+        info = dict(state.info)
+        info["a_prev"] = a
+        reward = -dist + self.precision_reward * (1.0 - jnp.tanh(dist / PRECISION_SCALE))
+        return state.replace(pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero,
+                             metrics=metrics, info=info)
+
+    def _limit_metrics(self, state: State, d, a, qs, vs, accs, taus) -> dict:
+        """``state.metrics`` updated with one step's ``violation/*``, ``count/*``, ``accel_error`` and
+        ``model_error``, from the substeps' positions ``qs``, velocities ``vs``, accelerations ``accs``
+        and torques ``taus`` (each ``(frame_skip, n)``), the command ``a`` and the end state ``d``."""
         lim = self.limits
         f = self._f32
         zero = jnp.zeros((), jnp.float32)
@@ -296,21 +311,15 @@ class ArmReach(Env):
             "jerk": excess(jnp.abs(a - state.info["a_prev"]) - f(lim.j_max) * self.dt) if lim.j_max is not None else zero,
             "torque": excess(jnp.abs(taus) - f(self.tau_max)[None]),
         }
+        d0 = state.pipeline_state
         model = jl.integrate_step(d0.qpos, d0.qvel, a, self.dt, "semi_implicit", self.frame_skip)
         metrics = dict(state.metrics)
         for k, x in viol.items():
             metrics[f"violation/{k}"] = x
             metrics[f"count/{k}"] = (x > 0).astype(jnp.float32)
-        target = state.info["target"]
-        dist = jnp.linalg.norm(d.site_xpos[self.ee_site] - target)
-        metrics["distance"] = dist
         metrics["accel_error"] = jnp.max(jnp.abs(accs - a[None]))
         metrics["model_error"] = jnp.maximum(jnp.max(jnp.abs(d.qpos - model.q)), jnp.max(jnp.abs(d.qvel - model.v)))
-        info = dict(state.info)
-        info["a_prev"] = a
-        reward = -dist + self.precision_reward * (1.0 - jnp.tanh(dist / PRECISION_SCALE))
-        return state.replace(pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero,
-                             metrics=metrics, info=info)
+        return metrics
 
     def _obs(self, d, target):
         ee = d.site_xpos[self.ee_site]

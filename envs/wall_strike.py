@@ -43,7 +43,6 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-import jaxlimits as jl
 from jaxlimits._src import impact as _impact
 from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_broadcasting
 
@@ -249,29 +248,12 @@ class WallStrike(ArmReach):
         lim = self.limits
         f = self._f32
         zero = jnp.zeros((), jnp.float32)
-
-        def excess(x):
-            return jnp.maximum(jnp.max(x), zero)
-
-        viol = {
-            "position": excess(jnp.maximum(qs - f(lim.q_max)[None], f(lim.q_min)[None] - qs)),
-            "velocity": excess(jnp.abs(vs) - f(lim.v_max)[None]),
-            "acceleration": excess(jnp.abs(a) - f(lim.a_max)),
-            "jerk": excess(jnp.abs(a - state.info["a_prev"]) - f(lim.j_max) * self.dt) if lim.j_max is not None else zero,
-            "torque": excess(jnp.abs(taus) - f(self.tau_max)[None]),
-        }
-        model = jl.integrate_step(d0.qpos, d0.qvel, a, self.dt, "semi_implicit", self.frame_skip)
-        metrics = dict(state.metrics)
-        for k, x in viol.items():
-            metrics[f"violation/{k}"] = x
-            metrics[f"count/{k}"] = (x > 0).astype(jnp.float32)
+        metrics = self._limit_metrics(state, d, a, qs, vs, accs, taus)
         target = state.info["target"]
         nrm = f(self.normal)
         ee = d.site_xpos[self.ee_site]
         dist = jnp.maximum(jnp.sum((target - ee) * nrm) - self.ball_radius, 0.0)
         metrics["distance"] = dist
-        metrics["accel_error"] = jnp.max(jnp.abs(accs - a[None]))
-        metrics["model_error"] = jnp.maximum(jnp.max(jnp.abs(d.qpos - model.q)), jnp.max(jnp.abs(d.qvel - model.v)))
         in_contact = jnp.max(contact)
         metrics["contact"] = in_contact
         spec = self.impact
