@@ -178,6 +178,58 @@ def _feasible_start(y, lower, upper, G, h, passes: int = 2):
     return y
 
 
+def _dependent(G, free, rows, unroll=True):
+    """Candidates of the working set already in the span of its held rows (on the free coordinates).
+
+    The candidates are the box bounds of each coordinate (the unit vectors, first ``n``) and the
+    rows (last ``m``): ``(n + m,)`` bool, True where the part of the candidate on ``free`` is, to
+    ``1e3 eps`` of its norm, a combination of the free parts of the ``rows`` held. Such a
+    constraint cannot block a step of the working set in exact arithmetic (the step keeps the held
+    rows, hence it, unchanged); letting it join on rounding makes the working set dependent, and
+    the active-set method can then cycle (a duplicate row released and re-added forever).
+    """
+    n, m = G.shape[1], G.shape[0]
+    eps = jnp.finfo(G.dtype).eps
+    V = jnp.concatenate([jnp.eye(n, dtype=G.dtype), G], axis=0)
+    VF = jnp.where(free[None, :], V, 0.0)
+    A = jnp.where(rows[:, None] & free[None, :], G, 0.0)
+    S = A @ A.T
+    reg = 1e2 * eps * (jnp.max(jnp.abs(jnp.diagonal(S))) + jnp.finfo(G.dtype).tiny)
+    S0 = masked_matrix(S, rows)
+    fac = chol_factor(S0 + reg * jnp.eye(m, dtype=G.dtype), unroll)
+    B = jnp.where(rows[:, None], A @ VF.T, 0.0)
+    C = jnp.where(rows[:, None], chol_apply(fac, B), 0.0)
+    # one refinement step: removes the regularisation's error (relative reg * cond(S) otherwise)
+    C = C + jnp.where(rows[:, None], chol_apply(fac, B - S0 @ C), 0.0)
+    R = VF - C.T @ A
+    tol = 1e3 * eps
+    return jnp.sum(R * R, axis=1) <= tol * tol * jnp.sum(V * V, axis=1)
+
+
+def _independent_rows(G, free, cand, eq):
+    """A working set of rows: every ``eq`` row, then the ``cand`` rows (in index order) whose free
+    part is independent of those already taken (Gram-Schmidt on the free coordinates, ``1e3 eps``)."""
+    m = G.shape[0]
+    eps = jnp.finfo(G.dtype).eps
+    GF = jnp.where(free[None, :], G, 0.0)
+    basis = []
+    take = [None] * m
+    for phase in (0, 1):
+        for j in range(m):
+            v = GF[j]
+            for q in basis:
+                v = v - (q @ v) * q
+            nv2 = v @ v
+            indep = nv2 > (1e3 * eps) ** 2 * (G[j] @ G[j])
+            if phase == 0:
+                take[j] = eq[j]
+            else:
+                take[j] = eq[j] | (cand[j] & indep)
+            use = (eq[j] if phase == 0 else (~eq[j] & take[j])) & indep
+            basis.append(jnp.where(use, v / jnp.sqrt(jnp.where(indep, nv2, 1.0)), 0.0))
+    return jnp.stack(take)
+
+
 def _active_set_solve(x_des, lower, upper, W, G, h, eq, start, max_iter, tols):
     """Primal active-set method on the box and the rows (working set: held bounds and rows).
 
@@ -185,11 +237,15 @@ def _active_set_solve(x_des, lower, upper, W, G, h, eq, start, max_iter, tols):
     solves the equality-constrained QP of the working set exactly (``_kkt_solve``) and steps towards
     its solution ``z``: all the way if no constraint outside the working set blocks (then the
     multiplier of most negative sign, if any, is released), else up to the first blocking
-    constraint, which joins the working set. From a feasible point the objective never increases
-    and no working set repeats, so it terminates (finitely, in exact arithmetic). ``start`` is a
-    box point (meeting the rows, or violating held ones: they hold with equality after the first
-    full step); the bounds it sits on and the rows it meets with equality start in the working
-    set. Rows in ``eq`` are equalities: always held, never released.
+    constraint, which joins the working set. The working set stays linearly independent: a
+    constraint dependent on the held rows never blocks (``_dependent``), else exact duplicate rows
+    cycle on rounding (a copy joins at a zero step, gets a negative multiplier, leaves, joins...).
+    From a feasible point the objective never increases and no working set repeats, so it
+    terminates (finitely, in exact arithmetic). ``start`` is a box point (meeting the rows, or
+    violating held ones: they hold with equality after the first full step); the bounds it sits on
+    and the rows it meets with equality (those independent of the ones taken before them,
+    ``_independent_rows``) start in the working set. Rows in ``eq`` are equalities: always held,
+    never released.
     """
     tol_x, tol_g, tol_h = tols
     n, m = W.shape[0], G.shape[0]
@@ -197,7 +253,8 @@ def _active_set_solve(x_des, lower, upper, W, G, h, eq, start, max_iter, tols):
     y0 = start
     held_l0 = (y0 <= lower) | flat
     held_u0 = (y0 >= upper) & ~held_l0
-    rows0 = (eq | (G @ y0 - h >= -tol_h)) if m else jnp.zeros((0,), bool)
+    # the rows met with equality at the start, but no row dependent on those taken (anti-cycling)
+    rows0 = _independent_rows(G, ~(held_l0 | held_u0), G @ y0 - h >= -tol_h, eq) if m else jnp.zeros((0,), bool)
     wdx = W @ x_des
     wd = jnp.sqrt(jnp.abs(jnp.diagonal(W))) + jnp.finfo(W.dtype).tiny
     gn = jnp.sqrt(jnp.sum(G * G, axis=1)) + jnp.finfo(W.dtype).tiny
@@ -210,14 +267,17 @@ def _active_set_solve(x_des, lower, upper, W, G, h, eq, start, max_iter, tols):
         zf, lam_z = _kkt_solve(W, G, free, rows, wdx - W @ xa, h - G @ xa)
         z = zf + xa
         d = jnp.where(free, z - y, 0.0)
-        # blocking box bounds (free coordinates only) and rows outside the working set
-        ratio_l = jnp.where(free & (d < 0), (lower - y) / jnp.where(d < 0, d, -1.0), jnp.inf)
-        ratio_u = jnp.where(free & (d > 0), (upper - y) / jnp.where(d > 0, d, 1.0), jnp.inf)
+        # blocking box bounds (free coordinates only) and rows outside the working set; a constraint
+        # dependent on the held rows never blocks (anti-cycling: the working set stays independent)
+        dep = _dependent(G, free, rows, unroll=False) if m else jnp.zeros((n,), bool)
+        free_b = free & ~dep[:n]
+        ratio_l = jnp.where(free_b & (d < 0), (lower - y) / jnp.where(d < 0, d, -1.0), jnp.inf)
+        ratio_u = jnp.where(free_b & (d > 0), (upper - y) / jnp.where(d > 0, d, 1.0), jnp.inf)
         ratios = [ratio_l, ratio_u]
         if m:
             gd = G @ d
             slack = jnp.maximum(h - G @ y, 0.0)
-            ratios.append(jnp.where(~rows & (gd > 0), slack / jnp.where(gd > 0, gd, 1.0), jnp.inf))
+            ratios.append(jnp.where(~rows & ~dep[n:] & (gd > 0), slack / jnp.where(gd > 0, gd, 1.0), jnp.inf))
         allr = jnp.concatenate(ratios)
         k = jnp.argmin(allr)
         blocked = allr[k] < 1.0
