@@ -206,6 +206,10 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
         assert again[k] == pytest.approx(vi["evaluation"][k], rel=1e-6), k
 
 
+@pytest.mark.skipif(os.environ.get("JAXLIMITS_SLOW_TESTS") != "1",
+                    reason="Brax APG end to end: ~2 min of compilation (the reverse pass through MJX); "
+                           "run with JAXLIMITS_SLOW_TESTS=1. The shield's derivative itself is checked in "
+                           "tests/test_envs_actions.py")
 def test_apg_trains_through_the_shield_and_reloads(tmp_path):
     """Brax APG (gradients through MJX and the shield) on a tiny budget: counted, zero violations, reloadable."""
     from jaxlimits.training import algos, brax_apg
