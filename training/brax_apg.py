@@ -36,7 +36,7 @@ with warnings.catch_warnings():
     from brax.training.agents.apg import train as brax_apg_train
 
 from jaxlimits.training import checkpoint, tally
-from jaxlimits.training.brax_ppo import env_from_config
+from jaxlimits.training.brax_ppo import deterministic_policy, env_from_config
 from jaxlimits.training.config import RunConfig, from_dict
 
 
@@ -117,14 +117,6 @@ def _train_apg(env, cfg: RunConfig, counts, updates: int, progress):
     )
 
 
-def _deterministic(make_policy):
-    def policy(params, obs, key, t):
-        del t
-        return make_policy(params, deterministic=True)(obs, key[1])[0]
-
-    return policy
-
-
 def load_policy(run_dir):
     """``(cfg, policy, params)`` from an APG run folder; ``policy(params, obs, key, t) -> action``."""
     run_dir = Path(run_dir)
@@ -134,4 +126,4 @@ def load_policy(run_dir):
     obs_spec = acme.specs.Array((env.observation_size,), jnp.dtype("float32"))
     template = (running_statistics.init_state(obs_spec), nets.policy_network.init(jax.random.PRNGKey(0)))
     params = checkpoint.load(run_dir / "params.msgpack", template)
-    return cfg, _deterministic(apg_networks.make_inference_fn(nets)), params
+    return cfg, deterministic_policy(apg_networks.make_inference_fn(nets)), params

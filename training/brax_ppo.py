@@ -94,7 +94,7 @@ class _Progress:
 
     def __call__(self, step, make_policy, params):
         if self.evaluator is None:
-            policy = lambda p, obs, key, t: make_policy(p, deterministic=True)(obs, key[1])[0]  # noqa: E731
+            policy = deterministic_policy(make_policy)
             self.evaluator = evaluate.Evaluator(self.env, policy, episodes=self.cfg.num_eval_envs,
                                                 episode_length=self.cfg.episode_length,
                                                 action_repeat=self.cfg.action_repeat)
@@ -160,10 +160,15 @@ def load_policy(run_dir):
     obs_spec = acme.specs.Array((env.observation_size,), jnp.dtype("float32"))
     template = (running_statistics.init_state(obs_spec), nets.policy_network.init(key), nets.value_network.init(key))
     params = checkpoint.load(run_dir / "params.msgpack", template)
-    make_policy = ppo_networks.make_inference_fn(nets)
+    return cfg, deterministic_policy(ppo_networks.make_inference_fn(nets)), params
+
+
+def deterministic_policy(make_policy):
+    """The evaluator's ``policy(params, obs, key, t) -> action`` from a Brax ``make_policy``
+    (``make_inference_fn(networks)``), deterministic; shared by PPO and APG."""
 
     def policy(params, obs, key, t):
         del t
         return make_policy(params, deterministic=True)(obs, key[1])[0]
 
-    return cfg, policy, params
+    return policy
