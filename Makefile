@@ -22,7 +22,8 @@ demo: $(STAMP)
 	$(PY) -m jaxlimits.training.cli main --out results/main
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	# two workers (the CI machine has 2 cores; XLA's CPU work is mostly single-threaded), whole files per worker
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_bounds.py
