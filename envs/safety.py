@@ -44,6 +44,7 @@ import numpy as np
 import jaxlimits as jl
 from jaxlimits._src import bounds as _bounds
 from jaxlimits._src import impact as _impact
+from jaxlimits._src import qp as _qp
 from jaxlimits._src import torque as _torque
 from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach, State, Wrapper
 
@@ -67,12 +68,13 @@ def intersect_torque_box(lower, upper, t_lower, t_upper):
     return jnp.where(conflict, keep, lo), jnp.where(conflict, keep, hi), conflict
 
 
-def project(a_des, lower, upper):
+def project(a_des, lower, upper, gradient: str = "exact"):
     """The projection of the command into the bounds (the one call to change for another metric).
 
-    ``jl.project_box`` with the Euclidean metric: the clip, exactly inside ``[lower, upper]``.
+    ``jl.project_box`` with the Euclidean metric: the clip, exactly inside ``[lower, upper]``;
+    ``gradient`` is ``jl.project_box``'s (``"exact"`` or ``"straight_through"``).
     """
-    return jl.project_box(a_des, lower, upper)
+    return jl.project_box(a_des, lower, upper, gradient=gradient)
 
 
 class SafetyWrapper(Wrapper):
@@ -98,6 +100,11 @@ class SafetyWrapper(Wrapper):
         the Panda with datasheet ``a_max``: with 1.0, 4 of 12 800 adversarial steps exceeded a torque
         limit (by <= 1.3 N m) without a conflict; with 0.95, none of 25 600.
 
+      gradient: the derivative of the projection seen by anything that differentiates through the
+        step (Brax APG): ``"exact"`` (default; the clip's true derivative, so a clipped joint passes
+        no gradient to its command) or ``"straight_through"`` (the identity w.r.t. the command, a
+        learning heuristic, not the projection's derivative; see ``jl.solve_box_qp``). The value of
+        the safe command is the same, bit for bit, so the guarantee does not depend on it.
       impact: ``None`` (off: behaviour unchanged), ``True`` (the env's ``impact`` spec) or a dict
         overriding any of ``c_range``, ``dt_impact``, ``tau_imp_max`` (n,) [N m], ``margin`` (the
         cap is scaled by it, default 1.0), ``reg`` (see ``jaxlimits.impact``). Needs an env with
@@ -108,10 +115,13 @@ class SafetyWrapper(Wrapper):
     """
 
     def __init__(self, env: ArmReach, method: str = "viability", dt_factor: float = 1.0, torque_box: bool = False,
-                 torque_box_margin: float = 0.95, impact=None):
+                 torque_box_margin: float = 0.95, impact=None, gradient: str = "exact"):
         super().__init__(env)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        if gradient not in _qp.GRADIENTS:
+            raise ValueError(f"gradient must be one of {_qp.GRADIENTS}, got {gradient!r}")
+        self.gradient = gradient
         if method == "jerk" and "jerk" not in _bounds.METHODS:
             raise ValueError("method='jerk' needs jaxlimits.acc_bounds(method='jerk'), which this version lacks")
         if not isinstance(env, ArmReach):
@@ -250,7 +260,7 @@ class SafetyWrapper(Wrapper):
         a_in = jnp.where(bad, brake, a_des)
         extra = dict(extra, nonfinite_action=bad[..., 0].astype(jnp.float32))
         if not self.impact:
-            return project(a_in, b.lower, b.upper), b, extra
+            return project(a_in, b.lower, b.upper, self.gradient), b, extra
         G, h, cap, u = self.impact_cap(state, b.lower, b.upper)
         # task-consistent correction first: remove the excess approach speed along u = M^-1 J^T M_eq n̂
         # (J u = n̂: only the normal end-effector acceleration changes, not the tangential one), then
@@ -260,7 +270,7 @@ class SafetyWrapper(Wrapper):
         excess = jnp.maximum(jnp.sum(g * a_in, axis=-1, keepdims=True) - h, 0.0)
         ok = gu > 1e-6
         a_task = a_in - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
-        res = jl.solve_box_qp(a_task, b.lower, b.upper, G=G, h=h)
+        res = jl.solve_box_qp(a_task, b.lower, b.upper, G=G, h=h, gradient=self.gradient)
         extra = dict(extra, impact_cap=cap, impact_infeasible=res.infeasible.astype(jnp.float32))
         return res.x, b, extra
 

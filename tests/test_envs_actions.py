@@ -100,3 +100,26 @@ def test_gradient_through_the_shield_is_the_projection_derivative(env):
         fd = (float(reward(action + e)) - float(reward(action - e))) / (2 * eps)
         assert g[j] != 0.0
         np.testing.assert_allclose(g[j], fd, rtol=0.05, atol=1e-6)
+
+
+def test_straight_through_shield_gradient_is_opt_in_and_keeps_the_value(env):
+    """``SafetyWrapper(gradient="straight_through")``: the same safe command bit for bit, and the
+    derivative of the shield w.r.t. the command is the identity (the exact one is 0 on a clipped
+    joint, 1 on a free one). No physics step: the shield alone, at a state where joint 0 must brake."""
+    exact, straight = SafetyWrapper(env, "viability"), SafetyWrapper(env, "viability", gradient="straight_through")
+    s = exact.reset(jax.random.PRNGKey(3))
+    q = 0.5 * (env.limits.q_max + env.limits.q_min)
+    q[0] = env.limits.q_max[0] - 0.18
+    v = np.array([env.limits.v_max[0] * 0.9, 0.0, 0.0])
+    s = s.replace(pipeline_state=s.pipeline_state.replace(qpos=jnp.asarray(q, jnp.float32), qvel=jnp.asarray(v, jnp.float32)))
+    a_des = jnp.asarray([1.0, 0.3, -0.2], jnp.float32) * jnp.asarray(env.limits.a_max, jnp.float32)
+    b = exact.bounds(s)
+    assert float(a_des[0]) > float(b.upper[0])  # joint 0 is clipped, the others are free
+    a_exact, a_straight = exact.shield(s, a_des)[0], straight.shield(s, a_des)[0]
+    np.testing.assert_array_equal(np.asarray(a_exact), np.asarray(a_straight))
+    jac_exact = np.asarray(jax.jacobian(lambda a: exact.shield(s, a)[0])(a_des))
+    jac_straight = np.asarray(jax.jacobian(lambda a: straight.shield(s, a)[0])(a_des))
+    np.testing.assert_array_equal(jac_exact, np.diag([0.0, 1.0, 1.0]))
+    np.testing.assert_array_equal(jac_straight, np.eye(3))
+    with pytest.raises(ValueError, match="gradient"):
+        SafetyWrapper(env, "viability", gradient="smooth")

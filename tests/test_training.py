@@ -43,6 +43,7 @@ def test_shipped_configs_load_and_validate():
     ({"apg": {"normalize_observations": 1}}, "apg.normalize_observations"),
     ({"apg": {"policy_hidden": []}}, "apg.policy_hidden"),
     ({"apg": {"horizon_length": 9, "action_repeat": 2}}, "apg.action_repeat"),
+    ({"apg": {"shield_gradient": "smooth"}}, "apg.shield_gradient"),
 ])
 def test_bad_config_raises_with_the_field(bad, field):
     d = config.load("tiny").to_dict()
@@ -51,6 +52,31 @@ def test_bad_config_raises_with_the_field(bad, field):
     d.update(bad)
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         config.from_dict(d)
+
+
+def test_config_choices_match_the_library():
+    """The config module lists the choices without importing MuJoCo; they must stay the library's."""
+    from jaxlimits._src.qp import GRADIENTS
+    from jaxlimits.envs.actions import ACTION_MODES
+
+    assert config.SHIELD_GRADIENTS == GRADIENTS and config.ACTION_MODES == ACTION_MODES
+
+
+def test_apg_config_selects_the_shield_gradient():
+    from jaxlimits.envs import SafetyWrapper
+    from jaxlimits.training.brax_ppo import env_from_config
+
+    def shield_gradient(cfg):
+        env = env_from_config(cfg)
+        while not isinstance(env, SafetyWrapper):
+            env = env.env
+        return env.gradient
+
+    cfg = config.load("planar_reach_apg")
+    straight = config.from_dict({**cfg.to_dict(), "apg": {**cfg.to_dict()["apg"], "shield_gradient": "straight_through"}})
+    assert shield_gradient(cfg) == "exact"
+    assert shield_gradient(straight) == "straight_through"
+    assert shield_gradient(straight.override(algo="ppo")) == "exact"  # PPO does not differentiate the env
 
 
 # ----------------------------------------------------------------------------- checkpoints

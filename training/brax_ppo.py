@@ -41,18 +41,22 @@ def make_base_env(name: str, **kwargs):
     return {"planar_reach": make_planar_reach, "panda_reach": make_panda_reach}[name](**kwargs)
 
 
-def make_env(name: str, shield: str, action_mode: str = "acceleration", **kwargs):
-    """``SafetyWrapper(ArmReach(**kwargs), method=shield)`` with the policy's actions meaning
-    ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm and the evaluator see."""
+def make_env(name: str, shield: str, action_mode: str = "acceleration", shield_gradient: str = "exact", **kwargs):
+    """``SafetyWrapper(ArmReach(**kwargs), method=shield, gradient=shield_gradient)`` with the
+    policy's actions meaning ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm
+    and the evaluator see."""
     from jaxlimits.envs import SafetyWrapper
     from jaxlimits.envs.actions import with_action_mode
 
-    return with_action_mode(SafetyWrapper(make_base_env(name, **kwargs), method=shield), action_mode)
+    shielded = SafetyWrapper(make_base_env(name, **kwargs), method=shield, gradient=shield_gradient)
+    return with_action_mode(shielded, action_mode)
 
 
 def env_from_config(cfg: RunConfig):
-    """``make_env`` with the config's env, shield, action mode, observation and reward."""
-    return make_env(cfg.env, cfg.shield, cfg.action_mode, ik_observation=cfg.ik_observation,
+    """``make_env`` with the config's env, shield, action mode, observation and reward (and, for
+    APG, the derivative of the shield its policy gradient goes through)."""
+    shield_gradient = cfg.apg.shield_gradient if cfg.algo == "apg" else "exact"
+    return make_env(cfg.env, cfg.shield, cfg.action_mode, shield_gradient, ik_observation=cfg.ik_observation,
                     precision_reward=cfg.precision_reward)
 
 

@@ -15,6 +15,7 @@ ENVS = ("planar_reach", "panda_reach")
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
 ACTION_MODES = ("acceleration", "velocity", "task_space")  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
+SHIELD_GRADIENTS = ("exact", "straight_through")  # jaxlimits' project_box gradients
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,9 @@ class APGConfig:
 
     Each policy update differentiates the mean reward of ``horizon_length`` env steps of
     ``num_envs`` envs through the simulator *and the shield* (the projection's derivative);
-    ``num_timesteps / (num_envs * horizon_length)`` updates are made.
+    ``num_timesteps / (num_envs * horizon_length)`` updates are made. ``shield_gradient``: the
+    derivative of the shield's projection the gradient goes through, ``"exact"`` (a clipped joint
+    passes none) or ``"straight_through"`` (identity; a heuristic, see ``SafetyWrapper``).
     """
 
     num_envs: int = 64
@@ -57,6 +60,7 @@ class APGConfig:
     num_evals: int = 11
     num_eval_envs: int = 128
     policy_hidden: tuple = (64, 64)
+    shield_gradient: str = "exact"
 
 
 @dataclass(frozen=True)
@@ -110,6 +114,9 @@ class RunConfig:
             raise ValueError(f"episode_length ({self.episode_length}) must be a multiple of {self.algo}.action_repeat "
                              f"({self.action_repeat})")
         a = self.apg
+        if a.shield_gradient not in SHIELD_GRADIENTS:
+            raise ValueError(f"config field 'apg.shield_gradient' must be one of {SHIELD_GRADIENTS}, "
+                             f"got {a.shield_gradient!r}")
         if a.horizon_length % a.action_repeat:
             raise ValueError(f"apg.horizon_length ({a.horizon_length}) must be a multiple of apg.action_repeat "
                              f"({a.action_repeat})")
