@@ -21,8 +21,9 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m jaxlimits.training.cli main --out results/main
 
+# two pytest-xdist workers (the CI machine has 2 cores; XLA's CPU work is mostly single-threaded),
+# whole files per worker, the slowest files first (tests/conftest.py)
 test: $(STAMP)
-	# two workers (the CI machine has 2 cores; XLA's CPU work is mostly single-threaded), whole files per worker
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
