@@ -36,7 +36,7 @@ with warnings.catch_warnings():
     from brax.training.agents.apg import train as brax_apg_train
 
 from jaxlimits.training import checkpoint, tally
-from jaxlimits.training.brax_ppo import deterministic_policy, env_from_config
+from jaxlimits.training.brax_ppo import deterministic_policy, env_from_config, finish_run, start_run
 from jaxlimits.training.config import RunConfig, from_dict
 
 
@@ -63,9 +63,7 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
     """Train and save; returns the summary (also written to ``run_dir/summary.json``)."""
     if cfg.algo != "apg":
         raise ValueError(f"brax_apg.train needs algo='apg', got {cfg.algo!r}")
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+    run_dir = start_run(cfg, run_dir)
     env = env_from_config(cfg)
     counts = tally.Tally()
     a = cfg.apg
@@ -95,14 +93,8 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
         with warnings.catch_warnings(), jax.numpy_rank_promotion("allow"):
             for message in ("jax.device_put_replicated is deprecated", "optax.global_norm is deprecated"):
                 warnings.filterwarnings("ignore", message, DeprecationWarning)
-            make_policy, params, _ = _train_apg(env, cfg, counts, updates, progress)
-    wall = time.perf_counter() - t0
-
-    checkpoint.save(run_dir / "params.msgpack", params, meta=cfg.to_dict())
-    summary = {"config": cfg.to_dict(), "wall_s": wall, "training": counts.as_dict(),
-               "env_steps_per_s": counts.env_steps / wall, "final_eval": rows[-1] if rows else {}}
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
+            _, params, _ = _train_apg(env, cfg, counts, updates, progress)
+    return finish_run(cfg, run_dir, params, counts, time.perf_counter() - t0, rows)
 
 
 def _train_apg(env, cfg: RunConfig, counts, updates: int, progress):

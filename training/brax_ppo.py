@@ -123,11 +123,29 @@ class _Progress:
         self.file.close()
 
 
-def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
-    """Train and save; returns the summary (also written to ``run_dir/summary.json``)."""
+def start_run(cfg: RunConfig, run_dir) -> Path:
+    """Create the run folder and write its ``config.json`` (every algorithm's run folder starts so)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+    return run_dir
+
+
+def finish_run(cfg: RunConfig, run_dir: Path, params, counts: tally.Tally, wall: float, rows: list) -> dict:
+    """Save ``params.msgpack`` (the config as its metadata) and ``summary.json``; return the summary.
+
+    ``rows`` are the run's ``metrics.jsonl`` rows; the last one is the summary's ``final_eval``.
+    """
+    checkpoint.save(run_dir / "params.msgpack", params, meta=cfg.to_dict())
+    summary = {"config": cfg.to_dict(), "wall_s": wall, "training": counts.as_dict(),
+               "env_steps_per_s": counts.env_steps / wall, "final_eval": rows[-1] if rows else {}}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
+    """Train and save; returns the summary (also written to ``run_dir/summary.json``)."""
+    run_dir = start_run(cfg, run_dir)
     env = env_from_config(cfg)
     counts = tally.Tally()
     progress = _Progress(cfg, run_dir, counts, env, show_progress)
@@ -146,12 +164,7 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
         )
     finally:
         progress.close()
-    wall = time.perf_counter() - t0
-    checkpoint.save(run_dir / "params.msgpack", params, meta=cfg.to_dict())
-    summary = {"config": cfg.to_dict(), "wall_s": wall, "training": counts.as_dict(),
-               "env_steps_per_s": counts.env_steps / wall, "final_eval": progress.rows[-1] if progress.rows else {}}
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
+    return finish_run(cfg, run_dir, params, counts, time.perf_counter() - t0, progress.rows)
 
 
 def load_policy(run_dir):

@@ -54,18 +54,18 @@ def format_results(results: dict) -> str:
             "| eval episodes | eval success | eval return | eval pos / vel violations (max) | eval intervention rad/s² |")
     lines = [head, "|---" * 9 + "|"]
     for shield, r in results["shields"].items():
-        t, e = r["training"], r["evaluation"]
+        t = r["training"]
         lines.append(
             f"| {shield} | {t['env_steps']:,} | {t['violations/position']:,} / {t['violations/velocity']:,} "
             f"({t['max_violation/position']:.3g}, {t['max_violation/velocity']:.3g}) "
-            f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {e['episodes']:,} "
-            f"| {e['success_rate']:.3f} | {e['return_mean']:.2f} "
+            f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {_evaluation_cells(r['evaluation'])}")
+    if "reference" in results:
+        lines.append(f"| reference: scripted IK, viability | – | – | – | {_evaluation_cells(results['reference'])}")
+    return "\n".join(lines)
+
+
+def _evaluation_cells(e: dict) -> str:
+    """The table's evaluation columns (and the row's closing bar) of one ``evaluate.evaluate`` row."""
+    return (f"{e['episodes']:,} | {e['success_rate']:.3f} | {e['return_mean']:.2f} "
             f"| {e['violations/position']:,} / {e['violations/velocity']:,} "
             f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |")
-    if "reference" in results:
-        e = results["reference"]
-        lines.append(
-            f"| reference: scripted IK, viability | – | – | – | {e['episodes']:,} | {e['success_rate']:.3f} "
-            f"| {e['return_mean']:.2f} | {e['violations/position']:,} / {e['violations/velocity']:,} "
-            f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |")
-    return "\n".join(lines)
