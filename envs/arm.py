@@ -243,6 +243,11 @@ class ArmReach(Env):
         return d.site_xpos[self.ee_site]
 
     @_mjx_broadcasting
+    def ee_jacobian(self, q) -> jax.Array:
+        """Jacobian of the end-effector site position, ``(3, n)`` (forward-mode autodiff of MJX kinematics)."""
+        return jax.jacfwd(self.ee_position)(self._f32(q))
+
+    @_mjx_broadcasting
     def reset_to(self, q, v, target) -> State:
         """A state at joint positions ``q``, velocities ``v`` and end-effector target ``target``."""
         d = mjx.make_data(self.sys)

@@ -4,8 +4,8 @@
 
 1. ``dr = action * step_size`` [m], ``action in [-1, 1]^k``: the planar arm moves in its x-z plane
    (``k = 2``), the Panda in 3-D (``k = 3``) (``axes``, detected from the joint axes by default).
-2. ``J``: the end-effector site's linear Jacobian rows ``axes`` at the current ``q`` (``jax.jacfwd``
-   of the MJX forward kinematics ``env.ee_position``).
+2. ``J``: the end-effector site's linear Jacobian rows ``axes`` at the current ``q``
+   (``ArmReach.ee_jacobian``: forward-mode autodiff of the MJX forward kinematics).
 3. ``jaxlimits.timescale_ik(J, dr, v_max, t_min=dt, dq_min=q_min - q, dq_max=q_max - q,
    r_norm_max=ee_speed_max)``: the joint displacement ``dq`` and the time ``T >= dt`` that the
    joint velocity limits, the position limits and the end-effector speed cap allow for the whole
@@ -24,7 +24,6 @@ lag), ``task/speed`` (``||ee_{k+1} - ee_k|| / dt`` [m/s]).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -89,16 +88,17 @@ class TaskSpaceActions(Wrapper):
 
     def jacobian(self, q):
         """``(k, n)`` linear Jacobian of the end-effector site's ``axes`` at ``q (n,)``."""
-        return jax.jacfwd(self.base.ee_position)(q)[self._idx, :]
+        return self.base.ee_jacobian(q)[self._idx, :]
 
     def plan(self, state: State, action):
-        """``(timescale result, dr)`` for one unbatched state and action ``(k,)``."""
+        """``(timescale result, dr, J)`` for one unbatched state and action ``(k,)``; ``J`` the ``(k, n)``
+        Jacobian at the state the plan was made with."""
         q = state.pipeline_state.qpos
         dr = jnp.asarray(action, jnp.float32) * jnp.float32(self.step_size)
-        res = jl.timescale_ik(self.jacobian(q), dr, self._v_max, t_min=self.dt, alpha=self.alpha,
-                              r_norm_max=self.ee_speed_max,
+        J = self.jacobian(q)
+        res = jl.timescale_ik(J, dr, self._v_max, t_min=self.dt, alpha=self.alpha, r_norm_max=self.ee_speed_max,
                               dq_min=jnp.minimum(self._q_min - q, 0.0), dq_max=jnp.maximum(self._q_max - q, 0.0))
-        return res, dr
+        return res, dr, J
 
     def reset(self, rng) -> State:
         state = self.env.reset(rng)
@@ -106,14 +106,14 @@ class TaskSpaceActions(Wrapper):
         return state.replace(metrics=dict(state.metrics, **{k: zero for k in TASK_METRICS}))
 
     def step(self, state: State, action) -> State:
-        res, _ = self.plan(state, action)
+        res, _, J = self.plan(state, action)
         d = state.pipeline_state
         v_des = res.dq / res.t
         a_des = velocity_to_acc(v_des, d.qvel, self.dt)
         nstate = self.env.step(state, a_des / self._a_max)
         ee0 = d.site_xpos[self.base.ee_site][self._idx]
         ee1 = nstate.pipeline_state.site_xpos[self.base.ee_site][self._idx]
-        planned = (self.dt / res.t) * (self.jacobian(d.qpos) @ res.dq)
+        planned = (self.dt / res.t) * (J @ res.dq)
         metrics = dict(nstate.metrics)
         metrics["task/T"] = res.t
         metrics["task/unreached"] = (~res.reached).astype(jnp.float32)

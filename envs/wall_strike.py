@@ -185,11 +185,6 @@ class WallStrike(ArmReach):
         return jnp.concatenate([jnp.cos(d.qpos), jnp.sin(d.qpos), d.qvel, ee, target - ee, dist]).astype(jnp.float32)
 
     # ---- model quantities for the shield ------------------------------------------------------
-    @_mjx_broadcasting
-    def ee_jacobian(self, q) -> jax.Array:
-        """Jacobian of the end-effector site position, ``(3, n)`` (forward-mode autodiff of MJX kinematics)."""
-        return jax.jacfwd(self.ee_position)(self._f32(q))
-
     def impact_terms(self, q, v):
         """``(M, J, normal)`` at ``(q, v)`` for ``jaxlimits.impact`` (single state)."""
         M, _ = self.mass_and_bias(q, v)
