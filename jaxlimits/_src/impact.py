@@ -50,6 +50,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from jaxlimits._src.qp_checks import concrete
 from jaxlimits._src.safe_math import tiny_floor
 
 DEFAULT_REG = 1e-6
@@ -83,14 +84,6 @@ class SpeedCap(NamedTuple):
 
 
 # ---- eager checks ------------------------------------------------------------------------------
-def _concrete(x) -> bool:
-    try:
-        np.asarray(x)
-        return True
-    except Exception:  # a tracer
-        return False
-
-
 def _check(M, J, normal=None, **scalars):
     """Eager shape/value checks; value checks only for concrete inputs. Raises ``ValueError`` naming the field."""
     M, J = jnp.asarray(M), jnp.asarray(J)
@@ -103,14 +96,15 @@ def _check(M, J, normal=None, **scalars):
         normal = jnp.asarray(normal)
         if normal.shape[-1:] != (3,):
             raise ValueError(f"impact: normal must be (..., 3), got shape {normal.shape}")
-        if _concrete(normal):
-            nn = np.linalg.norm(np.asarray(normal, np.float64), axis=-1)
+        normal_value = concrete(normal)
+        if normal_value is not None:
+            nn = np.linalg.norm(normal_value, axis=-1)
             if not np.all(np.abs(nn - 1.0) < 1e-3):
                 raise ValueError(f"impact: normal must be a unit vector, got norm {nn.tolist()}")
     for name, val in scalars.items():
-        if val is None or not _concrete(val):
+        arr = None if val is None else concrete(val)
+        if arr is None:
             continue
-        arr = np.asarray(val, np.float64)
         if name == "c_max":
             ok, what = np.all((arr >= 0) & (arr <= 1)), "in [0, 1]"
         elif name == "reg":

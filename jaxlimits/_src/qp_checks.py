@@ -23,15 +23,16 @@ def _array(name, value, dtype=None):
     return arr
 
 
-def _concrete(value):
-    """The float64 NumPy value of a concrete input, or None when it is traced."""
+def concrete(value):
+    """The float64 NumPy value of a concrete input, or None when it is traced (also used by the
+    eager checks of ``impact`` and ``timescale``)."""
     if _is_traced(value):
         return None
     return np.asarray(value, dtype=np.float64)
 
 
 def _finite(name, value):
-    arr = _concrete(value)
+    arr = concrete(value)
     if arr is not None and not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[:5].tolist()
         raise ValueError(f"project_box: {name} must be finite, got {arr[~np.isfinite(arr)][:5].tolist()} at {bad}")
@@ -59,7 +60,7 @@ def check_inputs(x_des, lower, upper, metric, G, h):
         raise ValueError(
             f"project_box: shapes do not broadcast: x_des {x0.shape}, lower {out['lower'].shape}, upper {out['upper'].shape}"
         ) from exc
-    lo, hi = _concrete(out["lower"]), _concrete(out["upper"])
+    lo, hi = concrete(out["lower"]), concrete(out["upper"])
     if lo is not None and hi is not None:
         lo_b, hi_b = np.broadcast_arrays(lo, hi)
         bad = lo_b > hi_b
@@ -76,14 +77,14 @@ def check_inputs(x_des, lower, upper, metric, G, h):
             if W.shape != (n,):
                 raise ValueError(f"project_box: a diagonal metric must have shape ({n},), got {W.shape}")
             _finite("metric", W)
-            w = _concrete(W)
+            w = concrete(W)
             if w is not None and np.any(w <= 0):
                 raise ValueError(f"project_box: a diagonal metric must be > 0, got metric={w.tolist()}")
         elif W.ndim >= 2:
             if W.shape[-2:] != (n, n):
                 raise ValueError(f"project_box: a dense metric must have shape (..., {n}, {n}), got {W.shape}")
             _finite("metric", W)
-            w = _concrete(W)
+            w = concrete(W)
             if w is not None:
                 scale = np.max(np.abs(w), axis=(-2, -1), keepdims=True)
                 asym = np.max(np.abs(w - np.swapaxes(w, -1, -2)) / np.where(scale > 0, scale, 1.0))

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxlimits._src.qp import solve_box_qp
+from jaxlimits._src.qp_checks import concrete
 
 
 class TimeScaleResult(NamedTuple):
@@ -103,19 +104,25 @@ def householder_qr(A):
 
 
 def _check_positive(name, value):
-    if value is None or isinstance(value, jax.core.Tracer):
+    arr = None if value is None else concrete(value)
+    if arr is None:
         return
-    arr = np.asarray(value, dtype=np.float64)
     if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
         raise ValueError(f"timescale_ik: {name} must be finite and > 0, got {arr.tolist()}")
 
 
 def _check_finite(name, value):
-    if value is None or isinstance(value, jax.core.Tracer):
+    arr = None if value is None else concrete(value)
+    if arr is None:
         return
-    arr = np.asarray(value, dtype=np.float64)
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"timescale_ik: {name} must be finite, got {arr.tolist()}")
+
+
+def _negated(value):
+    """``-value`` as float64 NumPy when concrete (for a ``<= 0`` check by ``_check_positive``), else None."""
+    arr = concrete(value)
+    return None if arr is None else -arr
 
 
 def _prepare(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fix, alpha):
@@ -281,7 +288,7 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
     if v_min is None:
         v_min = -v_max
     else:
-        _check_positive("-v_min", None if isinstance(v_min, jax.core.Tracer) else -np.asarray(v_min, np.float64))
+        _check_positive("-v_min", _negated(v_min))
         v_min = jnp.broadcast_to(_as(v_min, dtype, "v_min"), (n,))
     if t_fix is None:
         _check_positive("t_min", t_min)
@@ -297,8 +304,8 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
     if (dq_min is None) != (dq_max is None):
         raise ValueError(f"{fname}: give both dq_min and dq_max or neither")
     if dq_min is not None:
-        if not isinstance(dq_min, jax.core.Tracer) and not isinstance(dq_max, jax.core.Tracer):
-            lo_n, hi_n = np.asarray(dq_min, np.float64), np.asarray(dq_max, np.float64)
+        lo_n, hi_n = concrete(dq_min), concrete(dq_max)
+        if lo_n is not None and hi_n is not None:
             if np.any(lo_n > 0) or np.any(hi_n < 0):
                 raise ValueError(f"{fname}: need dq_min <= 0 <= dq_max (the current position inside its limits), "
                                  f"got dq_min={lo_n.tolist()}, dq_max={hi_n.tolist()}")
@@ -311,7 +318,7 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
         if A.ndim != 2 or A.shape[1] != n:
             raise ValueError(f"{fname}: A must have shape (k, {n}), got {A.shape}")
         _check_positive("b_max", b_max)
-        _check_positive("-b_min", None if isinstance(b_min, jax.core.Tracer) else -np.asarray(b_min, np.float64))
+        _check_positive("-b_min", _negated(b_min))
         b_min = jnp.broadcast_to(_as(b_min, dtype, "b_min"), (A.shape[0],))
         b_max = jnp.broadcast_to(_as(b_max, dtype, "b_max"), (A.shape[0],))
     if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1):
