@@ -7,11 +7,9 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxlimits._src.tracing import is_traced
+
 _FIELDS = ("q_min", "q_max", "v_max", "a_max", "j_max")
-
-
-def _is_traced(x: Any) -> bool:
-    return isinstance(x, jax.core.Tracer)
 
 
 def _as_concrete(name: str, value: Any) -> np.ndarray:
@@ -47,7 +45,7 @@ class JointLimits:
         values = {"q_min": q_min, "q_max": q_max, "v_max": v_max, "a_max": a_max}
         if j_max is not None:
             values["j_max"] = j_max
-        if any(_is_traced(v) for v in values.values()):
+        if any(is_traced(v) for v in values.values()):
             for name in _FIELDS:
                 object.__setattr__(self, name, values.get(name))
             return
@@ -91,7 +89,7 @@ class JointLimits:
     @property
     def concrete(self) -> bool:
         """True when every field holds concrete values (not tracers)."""
-        return not any(_is_traced(getattr(self, f)) for f in _FIELDS)
+        return not any(is_traced(getattr(self, f)) for f in _FIELDS)
 
     def tree_flatten(self):
         has_jerk = self.j_max is not None

@@ -6,9 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
-def _is_traced(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
+from jaxlimits._src.tracing import is_traced
 
 
 def _array(name, value, dtype=None):
@@ -26,7 +24,7 @@ def _array(name, value, dtype=None):
 def concrete(value):
     """The float64 NumPy value of a concrete input, or None when it is traced (also used by the
     eager checks of ``impact`` and ``timescale``)."""
-    if _is_traced(value):
+    if is_traced(value):
         return None
     return np.asarray(value, dtype=np.float64)
 
