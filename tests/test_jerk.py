@@ -140,8 +140,14 @@ def test_position_threshold_matches_dense_bisection(name):
     d, v, a_prev = _threshold_states(name, int(os.environ.get("JERK_DENSE_STATES", "2000")))
     ref, lo, hi = position_threshold_dense(d, v, a_prev, lim, T, integrator, n)
     width = np.maximum(hi - lo, 1e-12)
-    model = jerk.make_model(T, integrator, n)
-    side = jax.jit(lambda d, v, a: jerk._upper_side(model, d, v, a, lim.v_max, lim.a_max, lim.j_max * T))
+    model = jl.make_discretisation(T, integrator, n)
+
+    def upper_side(d, v, a):  # the side's bound: its terms' minimum clipped into the jerk box (limit.combine)
+        t = jerk.upper_terms(model, d, v, a, lim.v_max, lim.a_max, lim.j_max * T)
+        lo = jnp.maximum(jnp.clip(a, -lim.a_max, lim.a_max) - lim.j_max * T, -lim.a_max)
+        return jnp.clip(jnp.minimum(jnp.minimum(t["acceleration"], t["velocity"]), t["position"]), lo, t["acceleration"])
+
+    side = jax.jit(upper_side)
     assert np.mean(ref < hi) > 0.5 and np.mean((ref > lo) & (ref < hi)) > 0.4  # mostly inside the box
     with jax.enable_x64(True):
         got = np.asarray(side(d, v, a_prev))

@@ -59,22 +59,22 @@ Write ``A = a_max``, ``delta = j_max T`` (the largest change of acceleration per
   the hardest braking ``max(a_prev - delta, -A)``. Its gradient is the implicit-function one
   (``-dP/dtheta / dP/da`` at the root, ``_implicit_root``).
 * **XLA on the CPU.** Each side is one elementwise chain, not stacked with the other (a stacked
-  input is a concatenation, read element by element), and ends in ``_materialize`` (see there):
+  input is a concatenation, read element by element), and ends in ``safe_math.materialize`` (``Jerk.fuse_sides``):
   five loops in all instead of ~60.
 """
 
 from __future__ import annotations
-
-import functools
 
 import numpy as np
 
 import jax
 import jax.numpy as jnp
 
-from jaxlimits._src.bounds import Bounds, _check_limits_type, _rounding_guard, make_model
+from jaxlimits._src.joint_state import JointArrays, check_limits_type, guard_limits, inside_limits, joint_arrays
+from jaxlimits._src.limit import AccelerationLimit, Terms, toward_upper_side
 from jaxlimits._src.limits import JointLimits
 from jaxlimits._src.safe_math import tiny_floor
+from jaxlimits._src.tracing import is_traced
 
 NUDGE_ULPS = 32  # rounding margin of the threshold, ulps of 2 a_max
 PEAK_ULPS = 4  # and ulps of the peak's terms, through dP/da (see _upper_side)
@@ -85,54 +85,11 @@ JERK_CONDITION_SLACK = 1e-3
 # ----------------------------------------------------------------------------- the braking plan
 
 
-def _step_coeff(model):
-    """``c`` in ``p_{i+1} = p_i + T v_i + c a_i`` (position gained per step by a held ``a``)."""
-    if model.name == "zoh":
-        return 0.5 * model.dt * model.dt
-    return model.h * model.h * model.n * (model.n + 1) / 2.0
-
-
 def _ramp_state(i, v, a, T, delta, c):
     """Displacement and velocity at the start of step ``i`` of the ramp ``a_j = a - j delta``."""
     tri = i * (i - 1.0) / 2.0
     p = T * i * v + T * T * (a * tri - delta * tri * (i - 2.0) / 3.0) + c * (i * a - delta * tri)
     return p, v + T * (i * a - delta * tri)
-
-
-def _step_max(model, p, v, a):
-    """Largest displacement reached during one step with held ``a`` from ``(p, v)`` (after its start)."""
-    if model.name == "zoh":
-        T = model.dt
-        end = p + T * v + 0.5 * T * T * a
-        inside = (v > 0) & (a < 0) & (v < -a * T)
-        a_safe = jnp.where(inside, a, -1.0)
-        return jnp.where(inside, p - v * v / (2.0 * a_safe), end)
-    h, n = model.h, model.n
-    neg = a < 0
-    a_safe = jnp.where(neg, a, -1.0)
-    k_star = jnp.where(neg, -jax.lax.stop_gradient(v / a_safe) / h - 0.5, float(n))
-    k0 = jnp.floor(jnp.clip(k_star, 1.0, float(n)))
-    best = None
-    for k in (k0, jnp.minimum(k0 + 1.0, float(n)), jnp.full_like(k0, float(n))):
-        pk = p + k * h * v + h * h * a * k * (k + 1.0) / 2.0
-        best = pk if best is None else jnp.maximum(best, pk)
-    return best
-
-
-def _hold_peak(model, p, v, a_max):
-    """Peak displacement from ``(p, v)`` under ``a = -a_max`` held forever (the hold phase)."""
-    if model.name == "zoh":
-        vp = jnp.maximum(v, 0.0)
-        return p + vp * vp / (2.0 * a_max)
-    h = model.h
-    vp = jnp.maximum(v, 0.0)
-    k_hat = jnp.floor(jax.lax.stop_gradient(vp) / (a_max * h))
-    best = None
-    for off in (-1.0, 0.0, 1.0):  # D(v) = h max_K (K v - a_max h K (K+1)/2), as semi_implicit.braking_distance
-        K = jnp.maximum(k_hat + off, 0.0)
-        val = h * (K * vp - a_max * h * K * (K + 1.0) / 2.0)
-        best = val if best is None else jnp.maximum(best, val)
-    return p + best
 
 
 def braking_peak(model, v, a, a_max, delta):
@@ -142,7 +99,7 @@ def braking_peak(model, v, a, a_max, delta):
     position, over every instant after now (zoh) or every substep (semi-implicit).
     """
     T = model.period
-    c = _step_coeff(model)
+    c = model.position_gain
     sa, sv = jax.lax.stop_gradient(a), jax.lax.stop_gradient(v)
     m = jnp.maximum(jnp.ceil((sa + a_max) / delta), 0.0)
     # the crossing step: larger root x of v + T (x a - delta x (x - 1) / 2) = 0, step ceil(x) - 1
@@ -155,10 +112,11 @@ def braking_peak(model, v, a, a_max, delta):
     for off in (0.0, 1.0, 2.0):
         i = jnp.clip(i0 + off - 1.0, 0.0, top)
         p_i, v_i = _ramp_state(i, v, a, T, delta, c)
-        val = _step_max(model, p_i, v_i, jnp.maximum(a - i * delta, -a_max))
+        val = model.step_peak(p_i, v_i, jnp.maximum(a - i * delta, -a_max))
         best = val if best is None else jnp.maximum(best, val)
     p_m, v_m = _ramp_state(m, v, a, T, delta, c)
-    return jnp.maximum(best, _hold_peak(model, p_m, v_m, a_max))
+    # the hold phase: a = -a_max from step m on, the discretisation's braking distance
+    return jnp.maximum(best, p_m + model.braking_distance(v_m, a_max))
 
 
 def velocity_threshold(v, v_max, T, delta):
@@ -218,29 +176,7 @@ def _ramp_root(model, d, v, delta, i):
     s1 = T * i * (i + 1.0) / 2.0
     Vp = v + delta * s1
     s2 = T * T * i * (i + 1.0) * (2.0 * i + 1.0) / 12.0
-    first = i == 0
-    if model.name == "zoh":
-        Dp = d + delta * s2
-        t_end = (i + 1.0) * T
-        end_val = 2.0 * (Dp - Vp * t_end) / (t_end * t_end)
-        inside = (Dp > 0) & (Vp > 0) & (2.0 * Dp <= t_end * Vp) & (2.0 * Dp >= i * T * Vp)
-        vertex = jnp.where(inside, -Vp * Vp / (2.0 * jnp.where(inside, Dp, 1.0)), jnp.inf)
-        vertex = jnp.where(first & (v > 0) & (Dp <= 0), -jnp.inf, vertex)
-        # the step's start is the previous step's end, evaluated there (the candidate steps are adjacent)
-        return [jnp.minimum(end_val, vertex) + delta * i]
-    h, n = model.h, float(model.n)
-    D3 = d + delta * (s2 - 0.5 * h * s1)
-    regular = (D3 > 0) & (Vp > 0)
-    t_star = (D3 + jnp.sqrt(jnp.maximum(D3 * D3 + Vp * D3 * h, 0.0))) / jnp.where(regular, Vp, 1.0)
-    k_lo, k_hi = jnp.maximum(i * n, 1.0), (i + 1.0) * n
-    k0 = jnp.floor(t_star / h)
-    out = []
-    ks = (jnp.where(regular, jnp.clip(k0, k_lo, k_hi), k_lo), jnp.where(regular, jnp.clip(k0 + 1.0, k_lo, k_hi), k_hi))
-    for K in ks:
-        t = K * h
-        N = D3 - (Vp - 0.5 * delta * h * i) * t + 0.5 * delta * i * t * t
-        out.append(2.0 * N / (h * h * K * (K + 1.0)))
-    return out
+    return model.ramp_roots(d, v, delta, i, Vp, s1, s2)
 
 
 def _hold_root(model, d, v, a_max, delta, m):
@@ -254,27 +190,14 @@ def _hold_root(model, d, v, a_max, delta, m):
     Every value is an upper bound of the threshold (that plan is pointwise below the max-braking one).
     """
     T = model.period
-    c = _step_coeff(model)
+    c = model.position_gain
     sv = T * m
     sp = T * T * m * (m - 1.0) / 2.0 + c * m
     tri = m * (m - 1.0) / 2.0
     V0 = v - delta * T * tri
     P0 = T * m * v - delta * (T * T * tri * (m - 2.0) / 3.0 + c * tri)
     r = 0.5 * T * (m - 1.0) + c / T  # sp / sv
-    if model.name == "zoh":
-        C = jnp.maximum(d - P0 + r * V0, 0.0)
-        ar = a_max * r
-        x = 2.0 * a_max * C / (ar + jnp.sqrt(ar * ar + 2.0 * a_max * C))
-        return [(x - V0) / sv]
-    h = model.h
-    b = 2.0 * r / h - 1.0
-    cc = jnp.maximum(2.0 * (d - P0 + r * V0) / (a_max * h * h), 0.0)
-    j_hat = jnp.floor(0.5 * (jnp.sqrt(b * b + 4.0 * cc) - b))
-    out = []
-    for off in (-1.0, 0.0, 1.0):
-        j = jnp.maximum(j_hat + off, 0.0)
-        out.append((d - P0 - j * h * V0 + 0.5 * a_max * h * h * j * (j + 1.0)) / (sp + j * h * sv))
-    return out
+    return model.hold_roots(d, a_max, P0, V0, r, sp, sv)
 
 
 def position_threshold(model, d, v, a_max, delta, lo):
@@ -287,7 +210,7 @@ def position_threshold(model, d, v, a_max, delta, lo):
     operation, so XLA keeps the whole search in one loop.
     """
     T = model.period
-    d_x = d if model.name == "zoh" else d + 0.5 * model.h * v
+    d_x = model.crossing_distance(d, v)
     i0 = jnp.floor(_crossing_step(6.0 * v / (delta * T) - 1.0, -12.0 * d_x / (delta * T * T)))
     roots = []
     for i in (jnp.zeros_like(i0), jnp.maximum(i0 - 1.0, 1.0), jnp.maximum(i0, 1.0)):
@@ -348,21 +271,24 @@ def _side_ok(model, d, v, a_prev, v_max, a_max, delta):
     return (v + T * gain <= v_max) & (braking_peak(model, v, lo, a_max, delta) <= d)
 
 
-def _upper_side(model, d, v, a_prev, v_max, a_max, delta):
-    """The largest admissible ``a`` on the upper side, always inside ``[lo, hi]``.
+def upper_terms(model, d, v, a_prev, v_max, a_max, delta) -> dict:
+    """The upper side's terms: ``{"acceleration": hi0, "velocity": v-threshold, "position": verified root}``.
 
-    ``[lo, hi]`` is the jerk/acceleration box cut at the velocity threshold. The position
+    ``hi0 = min(a_prev + delta, a_max)`` is the top of the box the jerk lets this step reach (its
+    bottom ``lo = max(a_prev - delta, -a_max)`` is the lower side's ``"acceleration"`` term, and
+    ``combine`` clips into ``[lo, hi0]``); ``hi`` is that box cut at the velocity threshold. The position
     threshold ``r`` (``position_threshold``) is lowered by a rounding margin (``NUDGE_ULPS``,
     ``PEAK_ULPS``), clipped to the box and *verified* (``braking_peak <= d``: the value is
     returned only if it passes); where it fails the result is ``lo`` (the hardest braking the
     jerk limit allows), the best effort. Its gradient is the implicit-function one
-    (``_implicit_root``); at ``hi`` or ``lo``, theirs.
+    (``_implicit_root``); at ``hi`` or ``lo``, theirs. The side's bound, ``clip(min(terms), lo, hi0)``,
+    is then ``hi``, the root or ``lo``.
     """
     ap = jnp.clip(a_prev, -a_max, a_max)
     lo = jnp.maximum(ap - delta, -a_max)
-    hi = jnp.minimum(ap + delta, a_max)
+    hi0 = jnp.minimum(ap + delta, a_max)
     v_thr = velocity_threshold(v, v_max, model.period, delta)
-    hi = jnp.maximum(jnp.minimum(hi, v_thr), lo)
+    hi = jnp.maximum(jnp.minimum(hi0, v_thr), lo)
     sg = jax.lax.stop_gradient
     s_lo, s_hi, s_v, s_d, s_am, s_dl = (sg(x) for x in (lo, hi, v, d, a_max, delta))
     r = position_threshold(model, s_d, s_v, s_am, s_dl, s_lo)
@@ -383,7 +309,7 @@ def _upper_side(model, d, v, a_prev, v_max, a_max, delta):
     at_hi = passes & (r >= s_hi)
     inner = passes & (cand > s_lo) & ~at_hi
     root = _implicit_root(model, jnp.where(inner, cand, s_lo), v, d, a_max, delta)
-    return jnp.where(at_hi, hi, jnp.where(inner, root, lo))
+    return {"acceleration": hi0, "velocity": v_thr, "position": jnp.where(at_hi, hi, jnp.where(inner, root, lo))}
 
 
 def check_jerk_condition(limits: JointLimits, dt: float, integrator: str = "zoh", substeps: int = 1) -> None:
@@ -396,7 +322,7 @@ def check_jerk_condition(limits: JointLimits, dt: float, integrator: str = "zoh"
     """
     if limits.j_max is None:
         raise ValueError("method 'jerk'/'jerk_paper' needs JointLimits.j_max (got None)")
-    if not limits.concrete or isinstance(dt, jax.core.Tracer):
+    if not limits.concrete or is_traced(dt):
         return
     A, J = np.asarray(limits.a_max, np.float64), np.asarray(limits.j_max, np.float64)
     vmax = np.asarray(limits.v_max, np.float64)
@@ -434,112 +360,74 @@ def recovery_envelope(a_max, j_max, dt):
     return travel, w, a_peak
 
 
-def _jerk_inputs(q, v, a_prev, limits, dt, integrator, substeps):
-    from jaxlimits._src.bounds import _state_and_limits
-
-    model = make_model(dt, integrator, substeps)
-    _check_limits_type(limits)
-    if limits.j_max is None:
-        raise ValueError("method 'jerk'/'jerk_paper' needs JointLimits.j_max (got None)")
-    if a_prev is None:
-        raise ValueError("method 'jerk'/'jerk_paper' needs a_prev (the previous acceleration)")
-    a_prev = jnp.asarray(a_prev)
-    q = jnp.asarray(q)
-    dtype = jnp.promote_types(jnp.result_type(q, jnp.asarray(v), a_prev), jnp.float32)
-    q = q.astype(dtype)
-    try:
-        shape = jnp.broadcast_shapes(q.shape, jnp.shape(v), a_prev.shape)
-    except ValueError as exc:
-        raise ValueError(f"q {q.shape}, v {jnp.shape(v)} and a_prev {a_prev.shape} do not broadcast") from exc
-    q = jnp.broadcast_to(q, shape)
-    q, v, q_min, q_max, v_max, a_max = _state_and_limits(q, v, limits)
-    a_prev = jnp.broadcast_to(a_prev.astype(q.dtype), q.shape)
-    j_max = jnp.broadcast_to(jnp.asarray(limits.j_max, q.dtype), q.shape)
-    return model, q, v, a_prev, q_min, q_max, v_max, a_max, j_max
-
-
-def _materialize(x):
-    """``x`` unchanged (``x / (1 + 0 x)``, exact for finite ``x``), computed in one loop and stored once.
-
-    XLA's CPU fusion copies a chain of cheap operations into every consumer (here: both output
-    bounds read both sides) and cuts it, storing an intermediate array, at every expensive
-    operation (division, square root) it would have to copy: ~60 loops instead of 4, 10-20x
-    slower. A chain that ends in an expensive operation is not copied: it becomes one loop.
-    ``lax.optimization_barrier`` does not do this on the CPU (it is removed before fusion), and
-    XLA does not fold ``0 * x`` for floats.
-    """
-    return x / (1.0 + 0.0 * x)
-
-
-def _core(q, v, a_prev, q_min, q_max, v_max, a_max, j_max, model, rounding_guard, bounds=True):
+def _evaluate(a: JointArrays, model, rounding_guard: bool, thresholds: bool = True) -> Terms:
     """Both sides as separate elementwise chains (the lower one is the mirror image of the upper one).
 
     Not stacked on a new axis: a stacked input is a concatenation, which XLA's CPU loops read
-    element by element (not vectorised, ~10x slower). ``bounds=False``: only ``viable``.
+    element by element (not vectorised, ~10x slower). ``thresholds=False``: only ``viable`` (the
+    terms are empty).
     """
-    inside = (q >= q_min) & (q <= q_max) & (jnp.abs(v) <= v_max) & (jnp.abs(a_prev) <= a_max)
+    q, v, a_prev, q_min, q_max, v_max, a_max, j_max = a
     delta = j_max * model.period
     v_sat = 2.0 * v_max + 4.0 * a_max * model.period
     vc = jnp.clip(v, -v_sat, v_sat)
     ok_up = _side_ok(model, q_max - q, vc, a_prev, v_max, a_max, delta)
     ok_lo = _side_ok(model, q - q_min, -vc, -a_prev, v_max, a_max, delta)
-    viable = inside & ok_up & ok_lo
-    if not bounds:
-        return viable
+    viable = inside_limits(a) & ok_up & ok_lo
+    if not thresholds:
+        return Terms({}, {}, viable, viable)
     if rounding_guard:
-        n = getattr(model, "n", 1)
-        # the roundings of a whole stop (see bounds._rounding_guard): the velocity phase plus the
-        # jerk-limited swing of the acceleration from +a_max to -a_max and back to 0
+        # the roundings of a whole stop (see joint_state.guard_limits): per step the discretisation's own plus
+        # two of the jerk ramp; the stop is the velocity phase plus the jerk-limited swing of the acceleration
+        # from +a_max to -a_max and back to 0
         stop_steps = jnp.ceil(v_max / (a_max * model.period)) + jnp.ceil(3.0 * a_max / delta) + 1.0
-        q_min, q_max, v_max = _rounding_guard(q_min, q_max, v_max, a_max, n + 2, stop_steps)
+        q_min, q_max, v_max = guard_limits(q_min, q_max, v_max, a_max, model.roundings_per_step + 2, stop_steps)
         delta = delta * (1.0 - 4.0 * jnp.finfo(q.dtype).eps)
         v_sat = 2.0 * v_max + 4.0 * a_max * model.period
         vc = jnp.clip(v, -v_sat, v_sat)
     span = q_max - q_min
     qc = jnp.clip(q, q_min - span, q_max + span)
-    upper = _materialize(_upper_side(model, q_max - qc, vc, a_prev, v_max, a_max, delta))
-    lower = -_materialize(_upper_side(model, qc - q_min, -vc, -a_prev, v_max, a_max, delta))
-    conflict = lower > upper
-    toward_upper = (v > 0) | ((v == 0) & (2.0 * q >= q_min + q_max))
-    brake = jnp.where(toward_upper, upper, lower)
-    return Bounds(jnp.where(conflict, brake, lower), jnp.where(conflict, brake, upper), viable)
+    upper = upper_terms(model, q_max - qc, vc, a_prev, v_max, a_max, delta)
+    lower = {k: -t for k, t in upper_terms(model, qc - q_min, -vc, -a_prev, v_max, a_max, delta).items()}
+    return Terms(upper, lower, viable, toward_upper_side(v=v, q=q, q_min=q_min, q_max=q_max))
 
 
-@functools.partial(jax.jit, static_argnames=("dt", "integrator", "substeps", "rounding_guard", "bounds"))
-def _core_jit(q, v, a_prev, q_min, q_max, v_max, a_max, j_max, *, dt, integrator, substeps, rounding_guard,
-              bounds=True):
-    return _core(q, v, a_prev, q_min, q_max, v_max, a_max, j_max, make_model(dt, integrator, substeps), rounding_guard,
-                 bounds)
+_evaluate_jit = jax.jit(_evaluate, static_argnames=("model", "rounding_guard", "thresholds"))
 
 
-def jerk_acc_bounds(q, v, a_prev, limits: JointLimits, dt, integrator="zoh", substeps=1, rounding_guard=True) -> Bounds:
-    """Exact jerk-aware bounds (see the module docstring); called by ``acc_bounds(method="jerk")``.
+class Jerk(AccelerationLimit):
+    """Exact jerk-aware bounds (module docstring) for the state ``(q, v, a_prev)``; ``viable``: ``is_viable_jerk``.
 
-    Shapes, dtypes and the best effort on non-viable states are those of ``acc_bounds``; ``viable``
-    says whether ``(q, v, a_prev)`` is viable (``is_viable_jerk``). Compiled once per static
-    configuration (``dt``, ``integrator``, ``substeps``) even when called eagerly.
+    Needs ``limits.j_max``; the room-to-recover condition (``check_jerk_condition``) is checked here.
+    Compiled once per configuration (discretisation, ``rounding_guard``) even when called eagerly.
     """
-    model, q, v, a_prev, q_min, q_max, v_max, a_max, j_max = _jerk_inputs(q, v, a_prev, limits, dt, integrator, substeps)
-    check_jerk_condition(limits, model.period, integrator, substeps)
-    arrays = (q, v, a_prev, q_min, q_max, v_max, a_max, j_max)
-    if isinstance(model.period, jax.core.Tracer):
-        return _core(*arrays, model, rounding_guard)
-    return _core_jit(*arrays, dt=float(model.period), integrator=integrator, substeps=int(substeps),
-                     rounding_guard=bool(rounding_guard))
+
+    needs_a_prev = True
+    fuse_sides = True
+
+    def __init__(self, limits, model, rounding_guard: bool = True):
+        check_limits_type(limits)
+        check_jerk_condition(limits, model.period)
+        self.limits, self.model, self.rounding_guard = limits, model, bool(rounding_guard)
+
+    def _run(self, q, v, a_prev, thresholds):
+        a = jerk_arrays(q, v, a_prev, self.limits)
+        if is_traced(self.model.period):
+            return _evaluate(a, self.model, self.rounding_guard, thresholds)
+        return _evaluate_jit(a, model=self.model, rounding_guard=self.rounding_guard, thresholds=thresholds)
+
+    def evaluate(self, q, v, a_prev=None) -> Terms:
+        return self._run(q, v, a_prev, True)
+
+    def viable(self, q, v, a_prev=None):
+        return self._run(q, v, a_prev, False).viable
 
 
-def is_viable_jerk(q, v, a_prev, limits: JointLimits, dt, integrator: str = "zoh", substeps: int = 1):
-    """Whether ``(q, v, a_prev)`` is viable under position, velocity, acceleration and jerk limits.
-
-    Inside the limits (``|a_prev| <= a_max`` too) and some acceleration of the next step keeps
-    the max-braking plans of both sides inside (see ``jerk_acc_bounds``). Needs ``dt`` (the jerk
-    limit is per control step). Returns a bool array of the broadcast shape (the ``viable`` of
-    ``jerk_acc_bounds``; the bounds themselves are not computed).
-    """
-    model, q, v, a_prev, q_min, q_max, v_max, a_max, j_max = _jerk_inputs(q, v, a_prev, limits, dt, integrator, substeps)
-    check_jerk_condition(limits, model.period, integrator, substeps)
-    arrays = (q, v, a_prev, q_min, q_max, v_max, a_max, j_max)
-    if isinstance(model.period, jax.core.Tracer):
-        return _core(*arrays, model, False, bounds=False)
-    return _core_jit(*arrays, dt=float(model.period), integrator=integrator, substeps=int(substeps),
-                     rounding_guard=False, bounds=False)
+def jerk_arrays(q, v, a_prev, limits) -> JointArrays:
+    """``joint_arrays`` with the jerk state and limit required (eager ``ValueError`` naming what is missing)."""
+    check_limits_type(limits)
+    if limits.j_max is None:
+        raise ValueError("the jerk-aware bounds need JointLimits.j_max (got None)")
+    if a_prev is None:
+        raise ValueError("the jerk-aware bounds need a_prev (the previous joint accelerations)")
+    return joint_arrays(q, v, limits, a_prev)

@@ -2,10 +2,12 @@
 
 Faithful to the paper, including what makes it heuristic:
 
-* The model is the paper's eqs. (11), (28), (48): explicit Euler *positions*
+* The model of its formulas is the paper's eqs. (11), (28), (48): explicit Euler *positions*
   ``q_{k+1} = q_k + dt qd_k``, velocities ``qd_{k+1} = qd_k + dt qdd_k``, accelerations ramped by the
-  jerk. The ``integrator``/``substeps`` arguments are validated and otherwise ignored (the paper has
-  one model), and so is ``rounding_guard``.
+  jerk; the formulas do not depend on ``integrator``/``substeps``. Those name the model ``viable``
+  refers to: as for every method, membership of the exact viability kernel (here that of the exact
+  jerk-aware bounds, ``jerk.py``, for the discretisation given), so a user can count how often the
+  paper's bounds leave it. ``rounding_guard`` tightens the limits as for the exact jerk bounds.
 * Velocity, eqs. (13)-(14): ``a <= (v_M - v) / (n1 dt) - (n1 - 1)/2 jm dt`` with the integer
   ``n1 >= 1`` minimising it; (14) gives the real minimiser ``sqrt(2 (v_M - v) / J) / dt`` and we
   evaluate the two integers around it (the right-hand side is convex in ``n1``).
@@ -13,9 +15,8 @@ Faithful to the paper, including what makes it heuristic:
   deceleration ``am``; ``(n7, n9)`` minimise the right-hand side over the paper's grid
   ``1 <= n7 <= 500``, ``3 <= n9 <= 100`` (Appendix E: "all the combinations ... are to be tried"),
   done here as a vectorised brute force (49,000 pairs per joint).
-* Final bounds, eqs. (39)-(40): ``min(f_vel, f_pos, a_max, a_prev + J dt)`` and the mirror image.
-  ``viable`` is only "inside the limits and lower <= upper" (the QP stays feasible): the paper has
-  no viability test.
+* Final bounds, eqs. (39)-(40): ``min(f_vel, f_pos, a_max, a_prev + J dt)`` and the mirror image, the
+  terms ``velocity``, ``position``, ``acceleration``, ``jerk`` (the paper has no viability test).
 
 Typos and the readings chosen (all checked against the derivation they come from):
 
@@ -36,8 +37,10 @@ import jax
 import jax.numpy as jnp
 
 
-from jaxlimits._src.bounds import Bounds
-from jaxlimits._src.jerk import _jerk_inputs
+from jaxlimits._src.jerk import Jerk, jerk_arrays
+from jaxlimits._src.joint_state import JointArrays, guard_limits
+from jaxlimits._src.limit import AccelerationLimit, Terms, toward_upper_side
+from jaxlimits._src.tracing import is_traced
 
 N7 = (1, 500)
 N9 = (3, 100)
@@ -71,32 +74,43 @@ def position_upper(d, v, T, A, J):
     return jax.lax.fori_loop(N7[0] + 1, N7[1] + 1, body, rhs(jnp.asarray(float(N7[0]), d.dtype)))
 
 
-def _paper_core(q, v, a_prev, q_min, q_max, v_max, a_max, j_max, T):
+def _paper_terms(a: JointArrays, model, rounding_guard: bool) -> Terms:
+    q, v, a_prev, q_min, q_max, v_max, a_max, j_max = a
+    T = model.period
+    if rounding_guard:
+        stop_steps = jnp.ceil(v_max / (a_max * T)) + jnp.ceil(3.0 * a_max / (j_max * T)) + 1.0
+        q_min, q_max, v_max = guard_limits(q_min, q_max, v_max, a_max, model.roundings_per_step + 2, stop_steps)
     span = q_max - q_min
     qc = jnp.clip(q, q_min - span, q_max + span)
     vc = jnp.clip(v, -2.0 * v_max, 2.0 * v_max)
-    two = lambda x, y: jnp.stack([x, y])  # noqa: E731
+
+    def two(x, y):
+        return jnp.stack([x, y])
+
     vm2, am2, jm2 = two(v_max, v_max), two(a_max, a_max), two(j_max, j_max)
-    side = jnp.minimum(velocity_upper(two(vc, -vc), vm2, T, jm2),
-                       position_upper(two(q_max - qc, qc - q_min), two(vc, -vc), T, am2, jm2))
-    up = jnp.minimum(jnp.minimum(side[0], a_max), a_prev + j_max * T)
-    lo = jnp.maximum(jnp.maximum(-side[1], -a_max), a_prev - j_max * T)
-    inside = (q >= q_min) & (q <= q_max) & (jnp.abs(v) <= v_max) & (jnp.abs(a_prev) <= a_max)
-    conflict = lo > up
-    toward_upper = (v > 0) | ((v == 0) & (2.0 * q >= q_min + q_max))
-    brake = jnp.clip(jnp.where(toward_upper, up, lo), -a_max, a_max)
-    lower = jnp.clip(jnp.where(conflict, brake, lo), -a_max, a_max)
-    upper = jnp.clip(jnp.where(conflict, brake, up), -a_max, a_max)
-    upper = jnp.maximum(upper, lower)
-    return Bounds(lower, upper, inside & ~conflict)
+    vel = velocity_upper(two(vc, -vc), vm2, T, jm2)
+    pos = position_upper(two(q_max - qc, qc - q_min), two(vc, -vc), T, am2, jm2)
+    upper = {"acceleration": a_max, "jerk": a_prev + j_max * T, "velocity": vel[0], "position": pos[0]}
+    lower = {"acceleration": -a_max, "jerk": a_prev - j_max * T, "velocity": -vel[1], "position": -pos[1]}
+    return Terms(upper, lower, jnp.zeros(q.shape, bool), toward_upper_side(q, v, q_min, q_max))
 
 
-_paper_core_jit = jax.jit(_paper_core, static_argnames=("T",))
+_paper_terms_jit = jax.jit(_paper_terms, static_argnames=("model", "rounding_guard"))
 
 
-def paper_acc_bounds(q, v, a_prev, limits, dt, integrator="zoh", substeps=1, rounding_guard=True) -> Bounds:
-    """Eqs. (39)-(40) of Meguenani et al.; see the module docstring for the readings chosen."""
-    model, *arrays = _jerk_inputs(q, v, a_prev, limits, dt, integrator, substeps)
-    if isinstance(model.period, jax.core.Tracer):
-        return _paper_core(*arrays, model.period)
-    return _paper_core_jit(*arrays, T=float(model.period))
+class JerkPaper(AccelerationLimit):
+    """Meguenani et al.'s eqs. (39)-(40) (module docstring); ``viable`` from the exact jerk kernel (``Jerk``)."""
+
+    needs_a_prev = True
+
+    def __init__(self, limits, model, rounding_guard: bool = True):
+        self.kernel = Jerk(limits, model, rounding_guard)  # validates j_max and the room to recover
+        self.limits, self.model, self.rounding_guard = limits, model, bool(rounding_guard)
+
+    def evaluate(self, q, v, a_prev=None) -> Terms:
+        a = jerk_arrays(q, v, a_prev, self.limits)
+        if is_traced(self.model.period):
+            t = _paper_terms(a, self.model, self.rounding_guard)
+        else:
+            t = _paper_terms_jit(a, model=self.model, rounding_guard=self.rounding_guard)
+        return t._replace(viable=self.kernel.viable(q, v, a_prev))

@@ -13,16 +13,90 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jaxlimits._src.safe_math import tiny_floor
+from jaxlimits._src.step import Step
 
 
 class ZeroOrderHold:
     """The paper's model; positions are bounded in continuous time inside the step."""
 
-    name = "zoh"
-
     def __init__(self, dt: float):
         self.dt = dt
         self.period = dt
+
+    def __eq__(self, other):
+        return type(other) is type(self) and other._key() == self._key()
+
+    def __hash__(self):
+        return hash((type(self), self._key()))
+
+    def _key(self):
+        """Equal discretisations compile to the same code (the object is a static argument of ``jit``)."""
+        return (self.dt,)
+
+    # ------------------------------------------------------------ behaviour used by every limit family
+
+    @property
+    def roundings_per_step(self) -> int:
+        """Rounded operations on the position per control step (``q + T v + T^2 a / 2``), for the rounding guard."""
+        return 3
+
+    @property
+    def position_gain(self) -> float:
+        """``c`` in ``q_T = q + T v + c a`` (a held over the step): ``T^2 / 2`` (eq. 5)."""
+        return 0.5 * self.dt * self.dt
+
+    def integrate(self, q, v, a) -> Step:
+        """The exact parabola of eq. (5), with its interior extremum at ``t = -v / a`` when inside the step."""
+        T = self.dt
+        q1 = q + T * v + 0.5 * T * T * a
+        v1 = v + T * a
+        a_safe = jnp.where(a != 0, a, 1.0)
+        t_ext = jnp.where(a != 0, -v / a_safe, -1.0)
+        inside = (t_ext > 0) & (t_ext < T)
+        q_ext = jnp.where(inside, q + t_ext * v + 0.5 * t_ext * t_ext * a, q)
+        lo = jnp.minimum(jnp.minimum(q, q1), q_ext)
+        hi = jnp.maximum(jnp.maximum(q, q1), q_ext)
+        return Step(q1, v1, lo, hi)
+
+    def step_peak(self, p, v, a):
+        """Largest displacement reached during one step with held ``a`` from ``(p, v)`` (after its start):
+        the vertex ``p - v^2 / (2 a)`` when the velocity crosses zero inside the step, else the end."""
+        T = self.dt
+        end = p + T * v + 0.5 * T * T * a
+        inside = (v > 0) & (a < 0) & (v < -a * T)
+        a_safe = jnp.where(inside, a, -1.0)
+        return jnp.where(inside, p - v * v / (2.0 * a_safe), end)
+
+    def crossing_distance(self, d, v):
+        """``d'`` of the jerk bounds' crossing-step cubic: ``d`` itself (continuous-time positions)."""
+        return d
+
+    def ramp_roots(self, d, v, delta, i, Vp, s1, s2):
+        """Upper bounds of the jerk position threshold from step ``i`` of the endless ramp (see ``jerk._ramp_root``).
+
+        The bound at ``t`` is ``(D' - V' t + delta i t^2/2) / (t^2/2)``, minimised over the step at
+        ``t* = 2 D' / V'`` (value ``delta i - V'^2 / (2 D')``) if inside, else at the step's end (its start is
+        the previous candidate step's end). Step 0 excludes the start (``v <= 0``: its end).
+        """
+        T = self.dt
+        Dp = d + delta * s2
+        t_end = (i + 1.0) * T
+        end_val = 2.0 * (Dp - Vp * t_end) / (t_end * t_end)
+        inside = (Dp > 0) & (Vp > 0) & (2.0 * Dp <= t_end * Vp) & (2.0 * Dp >= i * T * Vp)
+        vertex = jnp.where(inside, -Vp * Vp / (2.0 * jnp.where(inside, Dp, 1.0)), jnp.inf)
+        vertex = jnp.where((i == 0) & (v > 0) & (Dp <= 0), -jnp.inf, vertex)
+        return [jnp.minimum(end_val, vertex) + delta * i]
+
+    def hold_roots(self, d, a_max, P0, V0, r, sp, sv):
+        """Upper bound of the jerk position threshold from the hold phase (see ``jerk._hold_root``).
+
+        ``p_m + v_m^2 / (2 A) = d`` is a quadratic in ``x = v_m``: ``2 A C / (A r + sqrt(A^2 r^2 + 2 A C))``
+        with ``C = d - P0 + r V0`` (``C < 0``: ``x = 0``).
+        """
+        C = jnp.maximum(d - P0 + r * V0, 0.0)
+        ar = a_max * r
+        x = 2.0 * a_max * C / (ar + jnp.sqrt(ar * ar + 2.0 * a_max * C))
+        return [(x - V0) / sv]
 
     def end_position_upper(self, d, v):
         """Largest ``a`` with ``q(T) <= q_max`` (eq. 2, 20): ``2 (d - T v) / T^2``."""
