@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxlimits as jl
-from jaxlimits._src import torque
+import jaxlimits.torque as torque
 from jaxlimits.envs.arm import dynamics_c, make_panda_reach, make_planar_reach, sample_states
 from jaxlimits.envs.safety import SafetyWrapper, project
 

@@ -37,7 +37,7 @@ with warnings.catch_warnings():  # brax imports jaxopt, which warns that it is u
     from brax.envs.base import Env, State, Wrapper
 
 import jaxlimits as jl
-from jaxlimits._src import torque as _torque
+import jaxlimits.torque as _torque
 
 ASSETS = pathlib.Path(__file__).parent / "assets"
 PRECISION_SCALE = 0.05  # [m], length scale of the optional precision reward (ArmReach(precision_reward=w))

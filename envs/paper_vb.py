@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-from mujoco.mjx._src import support as _support
+from mujoco.mjx._src import support as _support  # jac_dot: MJX 3.17 has no public name for it
 
 import jaxlimits as jl
 from jaxlimits.envs.arm import _mjx_broadcasting, make_panda_reach

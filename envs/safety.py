@@ -20,7 +20,7 @@ every joint started the step in the viability kernel). ``info['a_des']``, ``info
 most ``torque_box_margin * tau_max``. Where a joint's interval and the box are disjoint the limits
 win: the joint keeps the end of its limit interval nearest the box (the least demanding action the
 limits allow, the braking side), the motors may then saturate, and the step is counted in
-``metrics['torque_box_conflict']`` (see ``intersect_torque_box``). Metrics ``torque_box_scale``
+``metrics['torque_box_conflict']`` (``jaxlimits.intersect``, whose conflict rule this is). Metrics ``torque_box_scale``
 (the unclipped ``s``) and ``torque_box_conflict`` are added.
 
 ``impact=`` (envs with ``impact_terms``, e.g. ``WallStrike``) adds the impact-aware speed cap of
@@ -42,30 +42,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxlimits as jl
-from jaxlimits._src import bounds as _bounds
-from jaxlimits._src import impact as _impact
-from jaxlimits._src import qp as _qp
-from jaxlimits._src import torque as _torque
+import jaxlimits.impact as _impact
+import jaxlimits.torque as _torque
 from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach, State, Wrapper
 
 METHODS = ("none", "clip", "naive", "viability", "jerk")
-
-
-def intersect_torque_box(lower, upper, t_lower, t_upper):
-    """Intersect limit bounds ``[lower, upper]`` with a torque box ``[t_lower, t_upper]``, per joint.
-
-    Returns ``(lower', upper', conflict)``. Where the two intervals overlap the result is their
-    intersection. Where they are disjoint (``conflict``, per joint) the limit interval wins: it
-    collapses to its end nearest the box (``lower`` when ``lower > t_upper``, else ``upper``), the
-    least torque the limits allow. For the viability bounds that end is the braking side: dropping
-    it would trade a certain limit violation for a torque one, and the motors clamp the torque
-    anyway (the env measures it, ``violation/torque``). Never silent: the caller counts ``conflict``.
-    """
-    lo = jnp.maximum(lower, t_lower)
-    hi = jnp.minimum(upper, t_upper)
-    conflict = lo > hi
-    keep = jnp.where(lower > t_upper, lower, upper)
-    return jnp.where(conflict, keep, lo), jnp.where(conflict, keep, hi), conflict
 
 
 def project(a_des, lower, upper, gradient: str = "exact"):
@@ -90,7 +71,7 @@ class SafetyWrapper(Wrapper):
         Sec. V-B with 2x: 1.7 mrad overshoot at 0.08 rad/s), while a prefix of a viable
         semi-implicit trajectory with the same substep is viable.
       torque_box: also intersect the bounds with the per-state torque-feasible box (see the module
-        docstring and ``intersect_torque_box``). Costs one more MJX ``(M, h)`` evaluation per step.
+        docstring and ``jaxlimits.intersect``). Costs one more MJX ``(M, h)`` evaluation per step.
         It makes every command realisable at the step's start state; it cannot restore a guarantee
         that ``a_max`` itself breaks: the viability bounds assume that ``|a| <= a_max`` (full
         braking) is available at every later state, which holds for the torque-derived ``a_max``
@@ -119,11 +100,9 @@ class SafetyWrapper(Wrapper):
         super().__init__(env)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        if gradient not in _qp.GRADIENTS:
-            raise ValueError(f"gradient must be one of {_qp.GRADIENTS}, got {gradient!r}")
+        if gradient not in jl.PROJECTION_GRADIENTS:
+            raise ValueError(f"gradient must be one of {jl.PROJECTION_GRADIENTS}, got {gradient!r}")
         self.gradient = gradient
-        if method == "jerk" and "jerk" not in _bounds.METHODS:
-            raise ValueError("method='jerk' needs jaxlimits.acc_bounds(method='jerk'), which this version lacks")
         if not isinstance(env, ArmReach):
             raise TypeError(f"SafetyWrapper wraps an ArmReach directly, got {type(env).__name__}")
         self.method = method
@@ -141,9 +120,9 @@ class SafetyWrapper(Wrapper):
         self.substeps = int(round(substeps))
         self.dt_bounds = env.dt * self.dt_factor
         if method in ("naive", "viability", "jerk"):
-            _bounds.make_model(self.dt_bounds, env.integrator, self.substeps)  # validates eagerly
+            jl.make_discretisation(self.dt_bounds, env.integrator, self.substeps)  # validates eagerly
             if method != "naive":
-                _bounds.check_condition_11(env.limits, self.dt_bounds)
+                jl.check_condition_11(env.limits, self.dt_bounds)
 
     @staticmethod
     def _impact_options(env, impact):
@@ -212,9 +191,9 @@ class SafetyWrapper(Wrapper):
         M, h = jax.vmap(self.env.mass_and_bias)(q.reshape((-1, n)), v.reshape((-1, n)))
         tau = np.asarray(self.env.tau_max, np.float32) * np.float32(self.torque_box_margin)
         a_max = jnp.asarray(self.limits.a_max, jnp.float32)
-        scale = _torque.box_scale(M, h, tau, a_max).reshape(lead)
-        hi = jnp.clip(scale, 0.0, 1.0)[..., None] * a_max.reshape((1,) * len(lead) + (n,))
-        return -hi, hi, scale
+        box = _torque.TorqueBox(M, h, tau, a_max)
+        b = box.bounds()
+        return b.lower.reshape(lead + (n,)), b.upper.reshape(lead + (n,)), box.scale().reshape(lead)
 
     def _bounds(self, state: State, a_prev=None):
         """``(bounds, extra_metrics)``; the extra metrics are those of the torque box (empty without it)."""
@@ -222,9 +201,10 @@ class SafetyWrapper(Wrapper):
         if not self.torque_box:
             return b, {}
         t_lo, t_hi, scale = self.torque_acc_box(state)
-        lower, upper, conflict = intersect_torque_box(b.lower, b.upper, t_lo, t_hi)
-        extra = {"torque_box_scale": scale, "torque_box_conflict": jnp.any(conflict, axis=-1).astype(jnp.float32)}
-        return jl.Bounds(lower, upper, b.viable), extra
+        # the limits first: where the box is disjoint from them they win (jl.intersect's rule); viable stays theirs
+        both = jl.intersect(b, jl.Bounds(t_lo, t_hi, jnp.ones(t_lo.shape, bool)))
+        extra = {"torque_box_scale": scale, "torque_box_conflict": jnp.any(both.conflict, axis=-1).astype(jnp.float32)}
+        return both.bounds, extra
 
     def _limit_bounds(self, state: State, a_prev=None):
         d = state.pipeline_state
@@ -415,4 +395,4 @@ def adversarial_rollout(env: ArmReach, methods, batch, steps: int, seed: int = 0
     return out
 
 
-__all__ = ["METHODS", "POLICIES", "SafetyWrapper", "adversarial_rollout", "intersect_torque_box", "project"]
+__all__ = ["METHODS", "POLICIES", "SafetyWrapper", "adversarial_rollout", "project"]

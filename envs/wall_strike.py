@@ -43,7 +43,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from jaxlimits._src import impact as _impact
+import jaxlimits.impact as _impact
 from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_broadcasting
 
 HOME = np.array([0.0, 0.0, 0.0, -1.57079, 0.0, 1.57079, -0.7853])
@@ -272,9 +272,7 @@ class WallStrike(ArmReach):
 
 
 def _solve(m, d):
-    from mujoco.mjx._src import solver
-
-    return solver.solve(m, d)
+    return mjx.solve(m, d)
 
 
 def make_wall_strike(**kwargs) -> WallStrike:

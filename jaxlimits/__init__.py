@@ -12,8 +12,10 @@ from jaxlimits._src.integrate import Step, integrate_step
 from jaxlimits._src.jerk import Jerk, check_jerk_condition
 from jaxlimits._src.jerk_paper import JerkPaper
 from jaxlimits._src.limit import AccelerationLimit, Bounds, Constraint, Terms, brake_on_conflict
+from jaxlimits._src.joint_state import JointArrays, joint_arrays
 from jaxlimits._src.limits import JointLimits
 from jaxlimits._src.naive import Naive
+from jaxlimits._src.qp import GRADIENTS as PROJECTION_GRADIENTS
 from jaxlimits._src.qp import BoxQPResult, project_box, solve_box_qp
 from jaxlimits._src.registry import METHODS, make_limit, register_method
 from jaxlimits._src.semi_implicit import SemiImplicit
@@ -36,9 +38,11 @@ __all__ = [
     "Intersection",
     "Jerk",
     "JerkPaper",
+    "JointArrays",
     "JointLimits",
     "METHODS",
     "Naive",
+    "PROJECTION_GRADIENTS",
     "SemiImplicit",
     "SpeedCap",
     "Step",
@@ -63,6 +67,7 @@ __all__ = [
     "intersect",
     "is_viable",
     "is_viable_jerk",
+    "joint_arrays",
     "make_discretisation",
     "make_limit",
     "project_box",

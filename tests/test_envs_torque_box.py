@@ -10,20 +10,7 @@ import numpy as np
 import pytest
 
 from jaxlimits.envs.arm import make_panda_reach
-from jaxlimits.envs.safety import SafetyWrapper, adversarial_rollout, intersect_torque_box
-
-
-def test_intersection_and_conflict_rule():
-    lower = jnp.asarray([-5.0, 2.0, -9.0, -3.0])
-    upper = jnp.asarray([5.0, 6.0, -4.0, 1.0])
-    t_lo = jnp.asarray([-2.0, -1.0, -3.0, -0.5])
-    t_hi = jnp.asarray([2.0, 1.0, 3.0, 0.5])
-    lo, hi, conflict = intersect_torque_box(lower, upper, t_lo, t_hi)
-    # joint 0 and 3: overlap -> intersection; joint 1: limits need a >= 2 > box -> keep lower (2);
-    # joint 2: limits need a <= -4 < box -> keep upper (-4): the limits' braking side, never the box
-    np.testing.assert_array_equal(conflict, [False, True, True, False])
-    np.testing.assert_array_equal(lo, [-2.0, 2.0, -4.0, -0.5])
-    np.testing.assert_array_equal(hi, [2.0, 2.0, -4.0, 0.5])
+from jaxlimits.envs.safety import SafetyWrapper, adversarial_rollout
 
 
 def test_bad_margin_raises():

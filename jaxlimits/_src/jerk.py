@@ -65,13 +65,15 @@ Write ``A = a_max``, ``delta = j_max T`` (the largest change of acceleration per
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 import jax
 import jax.numpy as jnp
 
 from jaxlimits._src.joint_state import JointArrays, check_limits_type, guard_limits, inside_limits, joint_arrays
-from jaxlimits._src.limit import AccelerationLimit, Terms, toward_upper_side
+from jaxlimits._src.limit import AccelerationLimit, Bounds, Terms, combine, toward_upper_side
 from jaxlimits._src.limits import JointLimits
 from jaxlimits._src.safe_math import tiny_floor
 from jaxlimits._src.tracing import is_traced
@@ -395,15 +397,22 @@ def _evaluate(a: JointArrays, model, rounding_guard: bool, thresholds: bool = Tr
 _evaluate_jit = jax.jit(_evaluate, static_argnames=("model", "rounding_guard", "thresholds"))
 
 
+@functools.partial(jax.jit, static_argnames=("model", "rounding_guard"))
+def _bounds_jit(a: JointArrays, *, model, rounding_guard: bool):
+    return combine(_evaluate(a, model, rounding_guard), fuse_sides=True)
+
+
 class Jerk(AccelerationLimit):
     """Exact jerk-aware bounds (module docstring) for the state ``(q, v, a_prev)``; ``viable``: ``is_viable_jerk``.
 
     Needs ``limits.j_max``; the room-to-recover condition (``check_jerk_condition``) is checked here.
-    Compiled once per configuration (discretisation, ``rounding_guard``) even when called eagerly.
+    Compiled once per configuration (discretisation, ``rounding_guard``) even when called eagerly, and
+    the same compiled function serves a call inside ``jit``: eager and jitted results are bit-identical.
     """
 
     needs_a_prev = True
     fuse_sides = True
+    guarantees_safety = True
 
     def __init__(self, limits, model, rounding_guard: bool = True):
         check_limits_type(limits)
@@ -418,6 +427,12 @@ class Jerk(AccelerationLimit):
 
     def evaluate(self, q, v, a_prev=None) -> Terms:
         return self._run(q, v, a_prev, True)
+
+    def bounds(self, q, v, a_prev=None) -> Bounds:
+        if is_traced(self.model.period):
+            return super().bounds(q, v, a_prev)
+        a = jerk_arrays(q, v, a_prev, self.limits)
+        return _bounds_jit(a, model=self.model, rounding_guard=self.rounding_guard)
 
     def viable(self, q, v, a_prev=None):
         return self._run(q, v, a_prev, False).viable

@@ -74,7 +74,7 @@ def guard_limits(q_min, q_max, v_max, a_max, roundings, stop_steps):
     steps of a stop (``ceil(v_max / (a_max dt))`` for the viability bounds): the position limits move
     in by ``R eps (max|q_lim| + 2 v_max^2 / a_max)`` and ``v_max`` by ``R eps v_max``, with ``eps`` the
     machine epsilon of the limits' dtype. Float32, q_max = 2, v_max = 2, a_max = 12, dt = 0.01 s,
-    5 substeps: 18 steps, R = 97, 37 um of range; float64: ~1e-13, nothing measurable.
+    5 substeps: 17 steps, R = 92, 29 um per limit (58 um of range); float64: ~1e-13, nothing measurable.
     """
     eps = jnp.finfo(q_min.dtype).eps * (2.0 + roundings * (1.0 + stop_steps))
     m_q = eps * (jnp.maximum(jnp.abs(q_min), jnp.abs(q_max)) + 2.0 * v_max * v_max / a_max)

@@ -123,6 +123,9 @@ class AccelerationLimit(abc.ABC):
     needs_a_prev: ClassVar[bool] = False
     #: end each side in one XLA loop (see ``combine``)
     fuse_sides: ClassVar[bool] = False
+    #: whether every acceleration in the bounds of a viable state keeps it viable (safe forever by induction);
+    #: False for the baselines (``naive``, ``jerk_paper``), which the contract test shows to overshoot
+    guarantees_safety: ClassVar[bool] = False
     #: whether the limit has halfspace rows (then ``bounds`` alone would drop them: use ``constraint``)
     has_rows: ClassVar[bool] = False
 

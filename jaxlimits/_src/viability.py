@@ -59,6 +59,8 @@ def viability_upper(model, d, v, v_max, a_max) -> dict:
 class Viability(AccelerationLimit):
     """Del Prete's exact bounds (Alg. 3) for the discretisation ``model``; condition (11) checked here."""
 
+    guarantees_safety = True
+
     def __init__(self, limits, model, rounding_guard: bool = True):
         check_condition_11(limits, model.period)
         self.limits, self.model, self.rounding_guard = limits, model, bool(rounding_guard)
