@@ -193,3 +193,108 @@ def position_threshold_dense(d, v, a_prev, lim: JLimits1, T, integrator="zoh", n
         p = ok(mid)
         good, bad = np.where(p, mid, good), np.where(p, bad, mid)
     return np.where(ok(hi), hi, good), lo, hi
+
+
+# ------------------------------------------------------------------------- exact first step, restricted first command
+
+
+def first_step_interval(q0, v0, lim: JLimits1, T):
+    """The exact zoh interval of ``a_0`` keeping the first step's parabola ``q0 + v0 t + a_0 t^2 / 2`` inside.
+
+    Upper side: ``a_0 <= min_{0 < t <= T} 2 (d - v0 t) / t^2`` (``d = q_max - q0``), the minimum at
+    ``t* = 2 d / v0`` (value ``-v0^2 / (2 d)``) when ``v0 > 0`` and ``t* <= T``, else at ``t = T``;
+    lower side the mirror image. The first step is fixed by ``a_0`` alone, so this is necessary for
+    every plan; the sampled rows miss it when the step's extremum is before the first sample (a
+    state just under a limit, nearly at rest).
+    """
+    def upper(d, v):
+        if v > 0 and 2 * d <= v * T:
+            return -v * v / (2 * d) if d > 0 else -math.inf
+        return 2 * (d - v * T) / (T * T)
+
+    return -upper(q0 - lim.q_min, -v0), upper(lim.q_max - q0, v0)
+
+
+def _jerk_lp(q0, v0, a_prev, lim: JLimits1, T, integrator, n, H, samples, margin, first, objective):
+    """One LP of ``lp_jerk_bounds``' rows: ``objective`` in ``(None, +1, -1)`` (feasibility, min a_0, max a_0).
+
+    ``first``: extra bounds on ``a_0``; with it, zoh position rows of step 0 carry no ``margin``
+    (the interval is exact there). Returns the optimal ``a_0`` (``0.0`` for feasibility) or None.
+    """
+    pos_rows, vel_rows = _affine_rollout(q0, v0, T, H, integrator, n, samples)
+    A_ub, b_ub = [], []
+    for k, (c, g) in enumerate(pos_rows):
+        m = 0.0 if (first is not None and integrator == "zoh" and k < samples) else margin
+        A_ub += [g, -g]
+        b_ub += [lim.q_max - m - c, c - lim.q_min - m]
+    for c, g in vel_rows:
+        A_ub += [g, -g]
+        b_ub += [lim.v_max - c, lim.v_max + c]
+    dj = lim.j_max * T
+    for i in range(H):
+        g = np.zeros(H)
+        g[i] = 1.0
+        if i == 0:
+            A_ub += [g, -g]
+            b_ub += [dj + a_prev, dj - a_prev]
+        else:
+            g[i - 1] = -1.0
+            A_ub += [g, -g]
+            b_ub += [dj, dj]
+    c_end, g_end = vel_rows[-1]
+    last = np.zeros(H)
+    last[-1] = 1.0
+    bounds = [(-lim.a_max, lim.a_max)] * H
+    if first is not None:
+        bounds[0] = (max(first[0], -lim.a_max), min(first[1], lim.a_max))
+        if bounds[0][0] > bounds[0][1]:
+            return None
+    cost = np.zeros(H)
+    cost[0] = objective or 0.0
+    res = linprog(cost, A_ub=sparse.csr_matrix(np.array(A_ub)), b_ub=np.array(b_ub),
+                  A_eq=np.array([g_end, last]), b_eq=np.array([-c_end, 0.0]), bounds=bounds, method="highs",
+                  options=_HIGHS)
+    if res.status == 2:
+        return None
+    assert res.status == 0, res.message
+    return 0.0 if objective is None else float(res.x[0])
+
+
+def lp_jerk_bounds_exact_first(q0, v0, a_prev, lim: JLimits1, T, integrator="zoh", n=1, horizon=None, samples=8):
+    """``lp_jerk_bounds`` with the zoh first step exact (``first_step_interval``): a valid bracket near a limit too.
+
+    ``lp_jerk_bounds``' restriction keeps the samples ``a_max s^2 / 8`` inside, which bounds the
+    parabola between two samples, but not between the start ``q0`` (not kept inside) and the first
+    sample: for a state just under a limit and nearly at rest the step-0 peak lies there, and its
+    "inner" interval is not inside the exact one. Here step 0 is the exact interval of ``a_0`` (no
+    sampled rows with margin), later steps as before, so ``(outer, inner)`` bracket the exact bounds
+    for every state (semi-implicit: exact, as before). None: not viable.
+    """
+    if not (lim.q_min <= q0 <= lim.q_max and abs(v0) <= lim.v_max and abs(a_prev) <= lim.a_max):
+        return None
+    H = horizon or default_horizon(lim, T)
+    first = first_step_interval(q0, v0, lim, T) if integrator == "zoh" else None
+    out = []
+    for margin in ((0.0, lim.a_max * (T / samples) ** 2 / 8.0) if integrator == "zoh" else (0.0,)):
+        pair = [_jerk_lp(q0, v0, a_prev, lim, T, integrator, n, H, samples, margin, first, s) for s in (1.0, -1.0)]
+        out.append(None if None in pair else tuple(pair))
+    if out[0] is None:
+        return None
+    return out[0], (out[-1] if integrator == "zoh" else out[0])
+
+
+def lp_jerk_feasible(q0, v0, a_prev, lim: JLimits1, T, integrator="zoh", n=1, horizon=None, samples=8, first=None):
+    """Whether the LP *relaxation* of ``lp_jerk_bounds`` has a plan whose first command lies in ``first``.
+
+    ``first = (lo, hi)`` restricts ``a_0`` (default: the whole ``[-a_max, a_max]``). Positions are
+    rows at ``samples`` points per step (zoh; every substep for the semi-implicit model, exact), so
+    ``False`` proves that no admissible plan starts with such an ``a_0`` (the relaxation is
+    infeasible), and with ``first`` a *necessary* condition on ``a_0`` (e.g. ``first_step_interval``,
+    or a bound from the first step alone, which ``a_0`` fixes for every plan) it proves the state is
+    not viable. Same rows as ``lp_jerk_bounds``: jerk, velocity at every step end, rest (``v = 0``,
+    ``a = 0``) at the horizon.
+    """
+    if not (lim.q_min <= q0 <= lim.q_max and abs(v0) <= lim.v_max and abs(a_prev) <= lim.a_max):
+        return False
+    H = horizon or default_horizon(lim, T)
+    return _jerk_lp(q0, v0, a_prev, lim, T, integrator, n, H, samples, 0.0, first, None) is not None

@@ -68,7 +68,7 @@ def lp_comparison(name, count, method="jerk", seed=0):
     # braking crosses the limit between two samples); counted apart, not as a mismatch
     viable_widened = bounds64(name, q, v, a, method, widen=lim.a_max * (T / 8) ** 2 / 8)[2]
     out = dict(states=count, lp_viable=0, viability_mismatch=0, lp_resolution=0, unsafe=0, max_excess=0.0, gaps=[],
-               active=0)
+               active=0, brackets=[], outer_gaps=[])
     for k in range(count):
         r = _lp(name, float(q[k]), float(v[k]), float(a[k]))
         if r is None:
@@ -88,19 +88,38 @@ def lp_comparison(name, count, method="jerk", seed=0):
         out["active"] += int(i_up - i_lo < box - 1e-9)
         width = max(i_up - i_lo, 1e-12)
         out["gaps"].append(max(i_up - upper[k], 0.0) / width + max(lower[k] - i_lo, 0.0) / width)
+        # how far apart the relaxation and the restriction are (zoh: the LP's sampling; semi-implicit: 0), i.e.
+        # how much of a real gap the figure above could miss: it is measured against the restriction
+        out["brackets"].append((o_up - i_up + i_lo - o_lo) / width)
+        out["outer_gaps"].append(max(o_up - upper[k], 0.0) / width + max(lower[k] - o_lo, 0.0) / width)
     g = np.array(out["gaps"]) if out["gaps"] else np.zeros(1)
     out["gap_pct"] = {p: float(np.percentile(g, p)) * 100 for p in (50, 90, 99, 100)}
     out["gaps"] = len(out["gaps"])
+    b = np.array(out["brackets"]) if out["brackets"] else np.zeros(1)
+    out["bracket_pct"] = {p: float(np.percentile(b, p)) * 100 for p in (50, 100)}
+    # the true gap lies between gap_pct (against the restriction) and this one (against the relaxation)
+    o = np.array(out["outer_gaps"]) if out["outer_gaps"] else np.zeros(1)
+    out["outer_gap_pct"] = {p: float(np.percentile(o, p)) * 100 for p in (50, 99, 100)}
+    del out["brackets"], out["outer_gaps"]
     return out
+
+
+GAP_PCT_CLAIMED = 5e-10  # README: "gives away at most 5e-10 % of the exact width" (600 states per configuration)
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 def test_jerk_bounds_match_the_lp(name):
-    """Safe (never above the relaxed LP) and tight (within 1 % of the exact width) on 20 states."""
+    """Safe (never above the relaxed LP) and tight (at most the README's 5e-10 % of the exact width below the
+    restricted LP) on 20 states. Semi-implicit: both LPs are the exact answer. Zoh: the restriction is inside the
+    exact interval by up to the LP's sampling (``bracket_pct``: up to ~25 % of the width), so there this checks that
+    the bounds lie between the two LPs, not that they are within 5e-10 % of the exact ones."""
     res = lp_comparison(name, 20)
     assert res["unsafe"] == 0, res
     assert res["viability_mismatch"] == 0, res
-    assert res["gap_pct"][99] <= 1.0, res
+    assert res["gaps"] >= 12, res
+    assert res["gap_pct"][100] <= GAP_PCT_CLAIMED, res
+    if CONFIGS[name][2] == "semi_implicit":
+        assert res["bracket_pct"][100] <= 1e-9, res
 
 
 def test_jerk_paper_is_measured_against_the_lp():
