@@ -1,6 +1,6 @@
 # Two commands do everything on a fresh machine (Python 3.11 with venv):
 #   make demo   create/refresh .venv, install everything, run the main job
-#   make test   create/refresh .venv, install everything, run the whole test suite
+#   make test   create/refresh .venv, install everything, lint (ruff check, ruff format --check), run the suite
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -24,6 +24,8 @@ demo: $(STAMP)
 # two pytest-xdist workers (the CI machine has 2 cores; XLA's CPU work is mostly single-threaded),
 # whole files per worker, the slowest files first (tests/conftest.py)
 test: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)

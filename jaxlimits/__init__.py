@@ -9,7 +9,8 @@ from jaxlimits._src.discretisation import INTEGRATORS, make_discretisation
 from jaxlimits._src.impact import ImpactJump, SpeedCap, equivalent_mass, impact_constraints, impact_jump, impact_speed_cap
 from jaxlimits._src.impact_cap import ImpactCap
 from jaxlimits._src.integrate import Step, integrate_step
-from jaxlimits._src.jerk import Jerk, check_jerk_condition
+from jaxlimits._src.jerk import Jerk
+from jaxlimits._src.jerk_condition import check_jerk_condition
 from jaxlimits._src.jerk_paper import JerkPaper
 from jaxlimits._src.limit import AccelerationLimit, Bounds, Constraint, Terms, brake_on_conflict
 from jaxlimits._src.joint_state import JointArrays, joint_arrays

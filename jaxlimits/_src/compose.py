@@ -46,8 +46,15 @@ def intersect(first, *others) -> Intersection:
     """
     (lower, upper, viable), G, h = _parts(first)
     rest = [_parts(b) for b in others]
-    conflict = jnp.zeros(jnp.broadcast_shapes(jnp.shape(lower), *(jnp.shape(b.lower) for b, _, _ in rest)), bool)
+    shape = jnp.broadcast_shapes(jnp.shape(lower), *(jnp.shape(b.lower) for b, _, _ in rest))
+
+    def full(x):  # explicit broadcasting (rank promotion may be set to raise)
+        return jnp.broadcast_to(x, shape)
+
+    lower, upper, viable = full(lower), full(upper), full(viable)
+    conflict = jnp.zeros(shape, bool)
     for b, G_b, h_b in rest:
+        b = Bounds(full(b.lower), full(b.upper), full(b.viable))
         lo, hi = jnp.maximum(lower, b.lower), jnp.minimum(upper, b.upper)
         disjoint = lo > hi
         keep = jnp.where(lower > b.upper, lower, upper)

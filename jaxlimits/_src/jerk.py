@@ -9,11 +9,9 @@ Write ``A = a_max``, ``delta = j_max T`` (the largest change of acceleration per
   positions (at every instant for zoh, every substep for the semi-implicit model) at least those of
   the *max-braking* plan ``B(a)``: ``a_i = max(a - i delta, -A)``. So ``peak_B(a) <= d`` and
   ``vpeak_B(a) <= v_max`` are *necessary* for ``a`` to be admissible.
-* **And sufficient** (given enough room, ``check_jerk_condition``): ``B(a)`` reaches its peak
-  where its velocity crosses zero; from there the recovery plan (ramp the acceleration back to 0 at
-  full jerk, then a triangular jerk-limited stop of the backward motion) reaches rest
-  (``v = 0, a = 0``) travelling back at most ``back_travel`` and at speeds at most ``back_speed``,
-  both computed from the limits. When the range is at least twice that travel (plus margins), the
+* **And sufficient** when the range and speed leave room for the fastest recovery from the worst
+  peak state (``check_jerk_condition``, ``jerk_condition.py``; tight: just below it a state the
+  per-side tests call viable has no admissible command, measured against the LP). Then the
   upper-side and lower-side conditions can be checked separately, exactly as Del Prete's condition
   (11) decouples them without jerk; the long-horizon LP in the tests (which couples everything)
   confirms it. So the exact upper bound is the largest ``a`` in the jerk/acceleration box with
@@ -72,6 +70,7 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 
+from jaxlimits._src.jerk_condition import check_jerk_condition
 from jaxlimits._src.joint_state import JointArrays, check_limits_type, guard_limits, inside_limits, joint_arrays
 from jaxlimits._src.limit import AccelerationLimit, Bounds, Terms, combine, toward_upper_side
 from jaxlimits._src.limits import JointLimits
@@ -81,7 +80,6 @@ from jaxlimits._src.tracing import is_traced
 NUDGE_ULPS = 32  # rounding margin of the threshold, ulps of 2 a_max
 PEAK_ULPS = 4  # and ulps of the peak's terms, through dP/da (see _upper_side)
 NEWTON_STEPS = 3
-JERK_CONDITION_SLACK = 1e-3
 
 
 # ----------------------------------------------------------------------------- the braking plan
@@ -314,54 +312,6 @@ def upper_terms(model, d, v, a_prev, v_max, a_max, delta) -> dict:
     return {"acceleration": hi0, "velocity": v_thr, "position": jnp.where(at_hi, hi, jnp.where(inner, root, lo))}
 
 
-def check_jerk_condition(limits: JointLimits, dt: float, integrator: str = "zoh", substeps: int = 1) -> None:
-    """Raise unless the range and speed leave room for the recovery after a max-braking stop.
-
-    The recovery from the peak of the max-braking plan (velocity 0, acceleration at worst
-    ``-a_max``) ends at rest after a bounded backward travel at a bounded speed
-    (``recovery_envelope``; its peak acceleration is ``<= a_max`` by construction); it must fit:
-    ``v_max >= speed`` and ``q_max - q_min >= 2 travel``, with ``JERK_CONDITION_SLACK`` to spare. Skipped when the limits or ``dt`` are traced.
-    """
-    if limits.j_max is None:
-        raise ValueError("method 'jerk'/'jerk_paper' needs JointLimits.j_max (got None)")
-    if not limits.concrete or is_traced(dt):
-        return
-    A, J = np.asarray(limits.a_max, np.float64), np.asarray(limits.j_max, np.float64)
-    vmax = np.asarray(limits.v_max, np.float64)
-    span = np.asarray(limits.q_max, np.float64) - np.asarray(limits.q_min, np.float64)
-    travel, speed, a_peak = recovery_envelope(A, J, dt)
-    s = 1.0 + JERK_CONDITION_SLACK
-    bad = (vmax < s * speed) | (span < 2.0 * s * travel)
-    if np.any(bad):
-        raise ValueError(
-            "the jerk-aware bounds need room to recover from a max-braking stop (see check_jerk_condition): "
-            f"joints {np.flatnonzero(np.atleast_1d(bad)).tolist()} need v_max >= {np.atleast_1d(speed * s).tolist()}, "
-            f"and q_max - q_min >= {np.atleast_1d(2 * travel * s).tolist()} "
-            f"with dt={dt}; got v_max={np.atleast_1d(vmax).tolist()}, q_max - q_min={np.atleast_1d(span).tolist()}, "
-            f"a_max={np.atleast_1d(A).tolist()}, j_max={np.atleast_1d(J).tolist()} (raise j_max or lower a_max)"
-        )
-
-
-def recovery_envelope(a_max, j_max, dt):
-    """Upper bounds (travel, speed, peak acceleration) of the recovery from a max-braking peak.
-
-    At the peak ``v = 0`` and ``a >= -a_max``. Finish the step (speed ``<= a_max T``), raise ``a``
-    by ``delta`` per step until it is in ``[-delta, 0)`` (``<= a_max^2 / (2 j_max)`` more speed),
-    set it to 0, then stop the backward speed ``w`` with the triangle ``s (1, 2, .., N, .., 2, 1)``,
-    ``N = max(ceil(sqrt(w / (delta T))), ceil(w / (a_max T)))``, ``s = w / (N^2 T) <= delta``
-    (area ``w``, peak ``s N <= a_max``), then ``a = 0`` at
-    rest. The speed never exceeds ``w``, so the travel is at most ``w`` times the duration.
-    """
-    A, J, T = np.asarray(a_max, np.float64), np.asarray(j_max, np.float64), float(dt)
-    delta = J * T
-    n_ramp = np.ceil(A / delta) + 1.0
-    w = 2.0 * A * T + A * A / (2.0 * J)
-    n_tri = np.maximum(np.ceil(np.sqrt(w / (delta * T))), np.ceil(w / (A * T)))
-    a_peak = w / (n_tri * T)
-    travel = w * T * (1.0 + n_ramp + 1.0 + 2.0 * n_tri)
-    return travel, w, a_peak
-
-
 def _evaluate(a: JointArrays, model, rounding_guard: bool, thresholds: bool = True) -> Terms:
     """Both sides as separate elementwise chains (the lower one is the mirror image of the upper one).
 
@@ -416,7 +366,7 @@ class Jerk(AccelerationLimit):
 
     def __init__(self, limits, model, rounding_guard: bool = True):
         check_limits_type(limits)
-        check_jerk_condition(limits, model.period)
+        check_jerk_condition(limits, model.period, model.integrator, model.substeps)
         self.limits, self.model, self.rounding_guard = limits, model, bool(rounding_guard)
 
     def _run(self, q, v, a_prev, thresholds):

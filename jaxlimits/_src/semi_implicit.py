@@ -76,9 +76,12 @@ def braking_piece(R, a_max, h: float, n: int):
 class SemiImplicit:
     """MuJoCo's semi-implicit Euler update with ``substeps`` physics steps per control step."""
 
+    integrator = "semi_implicit"  # the name acc_bounds knows it by (for messages and the eager jerk condition)
+
     def __init__(self, dt: float, substeps: int):
         self.dt = dt
         self.n = substeps
+        self.substeps = substeps
         self.h = dt / substeps
         self.period = dt
 

@@ -19,6 +19,9 @@ from jaxlimits._src.step import Step
 class ZeroOrderHold:
     """The paper's model; positions are bounded in continuous time inside the step."""
 
+    integrator = "zoh"  # the name acc_bounds knows it by (for messages and the eager jerk condition)
+    substeps = 1
+
     def __init__(self, dt: float):
         self.dt = dt
         self.period = dt

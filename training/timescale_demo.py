@@ -7,7 +7,7 @@ effector. The time-scaled IK (``timescale_ik``) walks the path point by point, c
 (``s = t / t_f``, period ``T_s``), and ``shortest_fixed_tf`` finds the shortest ``t_f`` for which
 it never leaves the joint velocity limits (a grid of ``t_f``, every candidate in one batch).
 
-``python -m jaxlimits._src.timescale_demo [--quick]`` prints the table and one JSON line.
+``python -m jaxlimits.training.timescale_demo [--quick]`` prints the table and one JSON line.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxlimits._src.timescale import fixed_time_ik, timescale_ik
+from jaxlimits import fixed_time_ik, timescale_ik
 
 LENGTHS = (0.5, 0.4, 0.3, 0.2)  # link lengths [m]
 Q0 = (0.2, 0.5, 0.6, 0.5)  # initial joint positions [rad]
