@@ -192,7 +192,7 @@ class SafetyWrapper(Wrapper):
         tau = np.asarray(self.env.tau_max, np.float32) * np.float32(self.torque_box_margin)
         a_max = jnp.asarray(self.limits.a_max, jnp.float32)
         box = _torque.TorqueBox(M, h, tau, a_max)
-        b = box.bounds()
+        b = box.bounds(q, v)  # the state is in M and h
         return b.lower.reshape(lead + (n,)), b.upper.reshape(lead + (n,)), box.scale().reshape(lead)
 
     def _bounds(self, state: State, a_prev=None):

@@ -40,6 +40,10 @@ def test_bench_bounds_quick_runs_and_reports_json():
         assert _positive(r["rate"]) and _positive(r["ratio_vs_scalar_python"]), r
         assert r["batch"][1] == 7 and r["samples"] >= 1
     assert _positive(result["best_float32"]["rate"])
+    semi = result["semi_implicit5_vs_zoh_float32"]  # the MuJoCo model's headline: rate and ratio, same run
+    assert _positive(semi["semi_implicit5_rate"]) and _positive(semi["zoh_rate"])
+    assert math.isclose(semi["ratio"], semi["semi_implicit5_rate"] / semi["zoh_rate"])
+    assert semi["batch"] == [max(r["batch"][0] for r in rows), 7]  # --quick: its largest batch
     assert all(_positive(r["rate"]) and r["xla_fusions"] >= 1 for r in result["profile_float32_largest_batch"].values())
     flags = result["xla_flag_pass"]
     assert _positive(flags["with_flag"]["rate"]) and _positive(flags["without_flag"]["rate"])
