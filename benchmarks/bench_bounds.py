@@ -135,8 +135,13 @@ class Timer:
                 break
         self.contended_total += len(dirty)
         use = clean if clean else dirty
-        return {"rate": statistics.median(use), "samples": len(use), "contended_samples": len(dirty),
-                "clean": bool(clean), "inner": inner}
+        return {
+            "rate": statistics.median(use),
+            "samples": len(use),
+            "contended_samples": len(dirty),
+            "clean": bool(clean),
+            "inner": inner,
+        }
 
 
 # ---------------------------------------------------------------- states
@@ -210,8 +215,9 @@ def bounds_fn(config: str, limits):
     import jaxlimits as jl
 
     method, integrator, substeps = CONFIGS[config]
-    return jax.jit(lambda q, v: jl.acc_bounds(q, v, limits, DT, method=method, integrator=integrator,
-                                               substeps=substeps))
+    return jax.jit(
+        lambda q, v: jl.acc_bounds(q, v, limits, DT, method=method, integrator=integrator, substeps=substeps)
+    )
 
 
 def measure_all(batches, timer: Timer, limits) -> list[dict]:
@@ -231,8 +237,15 @@ def measure_all(batches, timer: Timer, limits) -> list[dict]:
                     jax.block_until_ready(fn(q, v))
                     compile_s = time.perf_counter() - t0
                     r = timer.rate(_jax_runner(fn, (q, v)), batch * N_JOINTS)
-                    rows.append({"config": config, "dtype": dtype_name, "batch": [batch, N_JOINTS],
-                                 "compile_s": round(compile_s, 3), **r})
+                    rows.append(
+                        {
+                            "config": config,
+                            "dtype": dtype_name,
+                            "batch": [batch, N_JOINTS],
+                            "compile_s": round(compile_s, 3),
+                            **r,
+                        }
+                    )
                 del q, v
     return rows
 
@@ -257,17 +270,23 @@ def profile(batch: int, timer: Timer, limits) -> dict:
     cases = {
         "viability/zoh (lower, upper, viable)": (jax.jit(bounds), (q, v)),
         "viability/zoh (lower, upper) only": (jax.jit(lambda q, v: tuple(bounds(q, v)[:2])), (q, v)),
-        "viability/zoh fused: clip(a, lower, upper)": (jax.jit(lambda q, v, a: jnp.clip(a, *bounds(q, v)[:2])), (q, v, a)),
+        "viability/zoh fused: clip(a, lower, upper)": (
+            jax.jit(lambda q, v, a: jnp.clip(a, *bounds(q, v)[:2])),
+            (q, v, a),
+        ),
         "naive/zoh (lower, upper, viable)": (bounds_fn("naive/zoh", limits), (q, v)),
         "semi_implicit(5) (lower, upper, viable)": (bounds_fn("viability/semi_implicit(5)", limits), (q, v)),
-        "floor: jnp.clip, same I/O": (jax.jit(lambda q, v: (jnp.clip(q, lo, hi), jnp.clip(v, -vm, vm), q < hi)), (q, v)),
+        "floor: jnp.clip, same I/O": (
+            jax.jit(lambda q, v: (jnp.clip(q, lo, hi), jnp.clip(v, -vm, vm), q < hi)),
+            (q, v),
+        ),
         "floor: jnp.clip(q), 1 in 1 out": (jax.jit(lambda q: jnp.clip(q, lo, hi)), (q,)),
     }
     out = {}
     for name, (fn, args) in cases.items():
         jax.block_until_ready(fn(*args))
         txt = fn.lower(*args).compile().as_text()
-        entry = txt[txt.index("ENTRY"):]
+        entry = txt[txt.index("ENTRY") :]
         r = timer.rate(_jax_runner(fn, args), batch * N_JOINTS)
         r["xla_fusions"] = sum(1 for line in entry.splitlines() if " fusion(" in line)
         out[name] = r
@@ -295,17 +314,29 @@ def child_main(batch: int, samples: int, sample_s: float) -> None:
 
 def flag_pass(batch: int, samples: int, sample_s: float) -> dict:
     out = {}
-    base = " ".join(p for p in os.environ.get("XLA_FLAGS", "").split()
-                    if not p.lstrip("-").startswith("xla_cpu_use_fusion_emitters"))
+    base = " ".join(
+        p
+        for p in os.environ.get("XLA_FLAGS", "").split()
+        if not p.lstrip("-").startswith("xla_cpu_use_fusion_emitters")
+    )
     for label, flags in (("without_flag", base), ("with_flag", (base + " " + FLAG).strip())):
         env = dict(os.environ, XLA_FLAGS=flags)
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--child-batch", str(batch),
-               "--child-samples", str(samples), "--child-sample-s", str(sample_s)]
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--child",
+            "--child-batch",
+            str(batch),
+            "--child-samples",
+            str(samples),
+            "--child-sample-s",
+            str(sample_s),
+        ]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("CHILD ")]
         if proc.returncode != 0 or len(lines) != 1:
             raise RuntimeError(f"child {label} failed (rc={proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
-        out[label] = json.loads(lines[0][len("CHILD "):])
+        out[label] = json.loads(lines[0][len("CHILD ") :])
     return out
 
 
@@ -322,9 +353,16 @@ def semi_vs_zoh(rows: list[dict], batch: int = HEADLINE_BATCH) -> dict:
     rate = {r["config"]: r for r in f32 if r["batch"][0] == b}
     semi, zoh = rate["viability/semi_implicit(5)"], rate["viability/zoh"]
     ratio = semi["rate"] / zoh["rate"]
-    return {"batch": [b, N_JOINTS], "semi_implicit5_rate": semi["rate"], "zoh_rate": zoh["rate"], "ratio": ratio,
-            "clean": semi["clean"] and zoh["clean"], "goal_rate": GOAL_RATE, "goal_ratio": GOAL_SEMI_VS_ZOH,
-            "meets_goal": semi["rate"] >= GOAL_RATE and ratio >= GOAL_SEMI_VS_ZOH}
+    return {
+        "batch": [b, N_JOINTS],
+        "semi_implicit5_rate": semi["rate"],
+        "zoh_rate": zoh["rate"],
+        "ratio": ratio,
+        "clean": semi["clean"] and zoh["clean"],
+        "goal_rate": GOAL_RATE,
+        "goal_ratio": GOAL_SEMI_VS_ZOH,
+        "meets_goal": semi["rate"] >= GOAL_RATE and ratio >= GOAL_SEMI_VS_ZOH,
+    }
 
 
 def fmt_rate(r: float) -> str:
@@ -359,8 +397,12 @@ def main() -> None:
 
         quick = args.quick
         batches = QUICK_BATCHES if quick else FULL_BATCHES
-        timer = Timer(samples=2 if quick else 5, sample_s=0.02 if quick else 0.1, budget_s=0.5 if quick else 4.0,
-                      total_redraw_s=3.0 if quick else 40.0)
+        timer = Timer(
+            samples=2 if quick else 5,
+            sample_s=0.02 if quick else 0.1,
+            budget_s=0.5 if quick else 4.0,
+            total_redraw_s=3.0 if quick else 40.0,
+        )
         limits = jl.JointLimits(Q_MIN, Q_MAX, V_MAX, A_MAX)
 
         scalar = scalar_rates(2000 if quick else 20000, repeats=1 if quick else 3)
@@ -374,8 +416,10 @@ def main() -> None:
         row["ratio_vs_scalar_python"] = row["rate"] / scalar[row["config"]]
 
     # ------------------------------------------------ table
-    print(f"jaxlimits acc_bounds throughput  (jax {jax.__version__}, {jax.default_backend()}, "
-          f"{os.cpu_count()} CPUs, XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, dt={DT}, Panda limits)")
+    print(
+        f"jaxlimits acc_bounds throughput  (jax {jax.__version__}, {jax.default_backend()}, "
+        f"{os.cpu_count()} CPUs, XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}, dt={DT}, Panda limits)"
+    )
     print("joint-bounds/s = 7 * batch / median time of one jitted call; ratio = vs scalar Python, same config\n")
     print(f"scalar Python reference (benchmarks/scalar_reference.py, {2000 if quick else 20000} joints):")
     for name, r in scalar.items():
@@ -387,33 +431,46 @@ def main() -> None:
     for row in rows:
         mark = "" if row["clean"] else " *"
         batch = f"({row['batch'][0]},{row['batch'][1]})"
-        print(f"{row['config']:28s} {row['dtype']:8s} {batch:>13s} {fmt_rate(row['rate']):>13s}/s "
-              f"{row['ratio_vs_scalar_python']:11.1f}x {row['compile_s']:9.2f}{mark}")
+        print(
+            f"{row['config']:28s} {row['dtype']:8s} {batch:>13s} {fmt_rate(row['rate']):>13s}/s "
+            f"{row['ratio_vs_scalar_python']:11.1f}x {row['compile_s']:9.2f}{mark}"
+        )
     print(f"\nprofile, float32, batch ({batches[-1]},7):")
     for name, r in prof.items():
-        print(f"  {name:44s} {fmt_rate(r['rate'])}joint-bounds/s  ({r['xla_fusions']} XLA fusions)"
-              + ("" if r["clean"] else " *"))
+        print(
+            f"  {name:44s} {fmt_rate(r['rate'])}joint-bounds/s  ({r['xla_fusions']} XLA fusions)"
+            + ("" if r["clean"] else " *")
+        )
     if flags:
         print(f"\nXLA flag pass, viability/zoh float32 batch ({batches[-1]},7), fresh process each:")
         for label, r in flags.items():
-            print(f"  {label:14s} XLA_FLAGS={r['xla_flags']!r:45s} {fmt_rate(r['rate'])}joint-bounds/s"
-                  + ("" if r["clean"] else " *"))
+            print(
+                f"  {label:14s} XLA_FLAGS={r['xla_flags']!r:45s} {fmt_rate(r['rate'])}joint-bounds/s"
+                + ("" if r["clean"] else " *")
+            )
     best32 = max((r for r in rows if r["dtype"] == "float32"), key=lambda r: r["rate"])
-    best32_via = max((r for r in rows if r["dtype"] == "float32" and r["config"] == "viability/zoh"),
-                     key=lambda r: r["rate"])
+    best32_via = max(
+        (r for r in rows if r["dtype"] == "float32" and r["config"] == "viability/zoh"), key=lambda r: r["rate"]
+    )
     goal = GOAL_RATE
     semi = semi_vs_zoh(rows)
-    print(f"\nviability/semi_implicit(5) float32 batch {tuple(semi['batch'])}: {fmt_rate(semi['semi_implicit5_rate'])}"
-          f"joint-bounds/s = {semi['ratio']:.2f} x viability/zoh ({fmt_rate(semi['zoh_rate'])}joint-bounds/s, same run; "
-          f"goal >= {GOAL_RATE / 1e6:.0f} M and >= {GOAL_SEMI_VS_ZOH} x: {'met' if semi['meets_goal'] else 'not met'})"
-          + ("" if semi["clean"] else " *"))
-    print(f"best float32: {fmt_rate(best32['rate'])}joint-bounds/s ({best32['config']}, batch {best32['batch']}); "
-          f"viability/zoh: {fmt_rate(best32_via['rate'])}joint-bounds/s "
-          f"({'meets' if best32_via['rate'] >= goal else 'below'} the 100 M goal)")
+    print(
+        f"\nviability/semi_implicit(5) float32 batch {tuple(semi['batch'])}: {fmt_rate(semi['semi_implicit5_rate'])}"
+        f"joint-bounds/s = {semi['ratio']:.2f} x viability/zoh ({fmt_rate(semi['zoh_rate'])}joint-bounds/s, same run; "
+        f"goal >= {GOAL_RATE / 1e6:.0f} M and >= {GOAL_SEMI_VS_ZOH} x: {'met' if semi['meets_goal'] else 'not met'})"
+        + ("" if semi["clean"] else " *")
+    )
+    print(
+        f"best float32: {fmt_rate(best32['rate'])}joint-bounds/s ({best32['config']}, batch {best32['batch']}); "
+        f"viability/zoh: {fmt_rate(best32_via['rate'])}joint-bounds/s "
+        f"({'meets' if best32_via['rate'] >= goal else 'below'} the 100 M goal)"
+    )
     n_dirty = timer.contended_total
-    print(f"samples discarded because another process used the CPU: {n_dirty}; "
-          f"other processes' CPU time during the run: {whole.foreign:.1f} s of {whole.wall:.1f} s wall "
-          "(figures marked * had no clean sample)")
+    print(
+        f"samples discarded because another process used the CPU: {n_dirty}; "
+        f"other processes' CPU time during the run: {whole.foreign:.1f} s of {whole.wall:.1f} s wall "
+        "(figures marked * had no clean sample)"
+    )
 
     result = {
         "jax_version": jax.__version__,

@@ -74,16 +74,20 @@ def _shield_only(env, batch: int, steps: int):
     @jax.jit
     def run(key):
         kq, kv, ka = jax.random.split(key, 3)
-        q = jax.random.uniform(kq, (batch, env.n), jnp.float32, jnp.asarray(lim.q_min, jnp.float32),
-                               jnp.asarray(lim.q_max, jnp.float32))
+        q = jax.random.uniform(
+            kq, (batch, env.n), jnp.float32, jnp.asarray(lim.q_min, jnp.float32), jnp.asarray(lim.q_max, jnp.float32)
+        )
         v = jax.random.uniform(kv, (batch, env.n), jnp.float32, -1.0, 1.0) * jnp.asarray(lim.v_max, jnp.float32)
 
         a_des = jax.random.uniform(ka, (steps, batch, env.n), jnp.float32, -1.0, 1.0) * a_max  # drawn up front
 
         def body(c, a_des):
             q, v = c
-            b = jax.vmap(lambda qq, vv: jl.acc_bounds(qq, vv, lim, dt, method="viability", integrator="semi_implicit",
-                                                      substeps=sub))(q, v)
+            b = jax.vmap(
+                lambda qq, vv: jl.acc_bounds(
+                    qq, vv, lim, dt, method="viability", integrator="semi_implicit", substeps=sub
+                )
+            )(q, v)
             a = project(a_des, b.lower, b.upper)
             return (q + 1e-9 * a, v + 1e-9 * a), None
 
@@ -111,7 +115,7 @@ def throughput(env, batch: int, steps: int, repeats: int, torque_box: bool):
     times = {k: [] for k in names}
     cpu = {k: [] for k in names}
     for r in range(repeats):
-        order = names[r % len(names):] + names[:r % len(names)]
+        order = names[r % len(names) :] + names[: r % len(names)]
         for k in order:
             t0, c0 = time.perf_counter(), time.process_time()
             jax.block_until_ready(fns[k](jax.random.PRNGKey(r + 1)))
@@ -140,9 +144,20 @@ def alg4(env, n_samples: int, chunk: int):
     lim = env.limits
     q, v = sample_states(np.random.default_rng(0), lim.q_min, lim.q_max, lim.v_max, n_samples)
     qf, vf = q.astype(np.float32), v.astype(np.float32)
-    fn = jax.jit(lambda q, v: torque.acc_bounds_from_torque(env.mass_and_bias, lim.q_min, lim.q_max, lim.v_max,
-                                                            env.tau_max, n_samples, None,
-                                                            a_nominal=env.a_max_nominal, states=(q, v), chunk=chunk))
+    fn = jax.jit(
+        lambda q, v: torque.acc_bounds_from_torque(
+            env.mass_and_bias,
+            lim.q_min,
+            lim.q_max,
+            lim.v_max,
+            env.tau_max,
+            n_samples,
+            None,
+            a_nominal=env.a_max_nominal,
+            states=(q, v),
+            chunk=chunk,
+        )
+    )
     t0 = time.perf_counter()
     jax.block_until_ready(fn(qf, vf))
     compile_s = time.perf_counter() - t0
@@ -155,17 +170,25 @@ def alg4(env, n_samples: int, chunk: int):
     lo_c, hi_c = np.asarray(lo).max(0), np.asarray(hi).min(0)
     c_s = time.perf_counter() - t0
     return {
-        "n_samples": n_samples, "mjx_s": mjx_s, "mjx_compile_s": compile_s, "c_loop_s": c_s,
+        "n_samples": n_samples,
+        "mjx_s": mjx_s,
+        "mjx_compile_s": compile_s,
+        "c_loop_s": c_s,
         "speedup_vs_c": c_s / mjx_s,
-        "max_rel_diff": float(max(np.max(np.abs(b.lower - lo_c) / np.abs(lo_c)), np.max(np.abs(b.upper - hi_c) / np.abs(hi_c)))),
-        "lower": np.asarray(b.lower).round(3).tolist(), "upper": np.asarray(b.upper).round(3).tolist(),
+        "max_rel_diff": float(
+            max(np.max(np.abs(b.lower - lo_c) / np.abs(lo_c)), np.max(np.abs(b.upper - hi_c) / np.abs(hi_c)))
+        ),
+        "lower": np.asarray(b.lower).round(3).tolist(),
+        "upper": np.asarray(b.upper).round(3).tolist(),
         "conservative_scale": float(b.scale),
     }
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="planar arm only, batch 64, no torque box, Alg. 4 with N=2e4 (< 60 s)")
+    p.add_argument(
+        "--quick", action="store_true", help="planar arm only, batch 64, no torque box, Alg. 4 with N=2e4 (< 60 s)"
+    )
     p.add_argument("--repeats", type=int, default=None, help="interleaved rounds (default 5 with --quick, else 9)")
     args = p.parse_args()
     repeats = args.repeats or (5 if args.quick else 9)
@@ -184,35 +207,53 @@ def main():
     a4["arm"] = "planar" if args.quick else "panda"
 
     tb = not args.quick
-    print("overhead %: median over rounds of the per-round time ratio - 1, [interquartile range]; wall clock and "
-          "process CPU time (less sensitive to other processes' load)")
-    print(f"{'arm/batch':<13}{'unshielded/s':>13}{'viability/s':>12}{'overhead % wall':>22}{'overhead % CPU':>22}"
-          + (f"{'torque box/s':>13}{'wall %':>8}{'CPU %':>8}" if tb else "")
-          + f"{'shield us':>10}{'step us':>9}{'shield %':>9}{'compile s':>10}{'viol':>6}")
+    print(
+        "overhead %: median over rounds of the per-round time ratio - 1, [interquartile range]; wall clock and "
+        "process CPU time (less sensitive to other processes' load)"
+    )
+    print(
+        f"{'arm/batch':<13}{'unshielded/s':>13}{'viability/s':>12}{'overhead % wall':>22}{'overhead % CPU':>22}"
+        + (f"{'torque box/s':>13}{'wall %':>8}{'CPU %':>8}" if tb else "")
+        + f"{'shield us':>10}{'step us':>9}{'shield %':>9}{'compile s':>10}{'viol':>6}"
+    )
 
     def cell(r, tag, k):
         lo, hi = r[f"overhead{tag}_pct_iqr/{k}"]
         return f"{r[f'overhead{tag}_pct/{k}']:.1f} [{lo:.1f}, {hi:.1f}]"
 
     for k, r in rows.items():
-        line = (f"{k:<13}{r['unshielded']:>13.0f}{r['viability']:>12.0f}{cell(r, '', 'viability'):>22}"
-                f"{cell(r, '_cpu', 'viability'):>22}")
+        line = (
+            f"{k:<13}{r['unshielded']:>13.0f}{r['viability']:>12.0f}{cell(r, '', 'viability'):>22}"
+            f"{cell(r, '_cpu', 'viability'):>22}"
+        )
         if tb:
-            line += (f"{r['torque_box']:>13.0f}{r['overhead_pct/torque_box']:>8.1f}"
-                     f"{r['overhead_cpu_pct/torque_box']:>8.1f}")
-        line += (f"{r['shield_us']:>10.3f}{r['step_us']:>9.2f}{r['shield_cost_pct']:>9.1f}{r['compile_s']:>10.1f}"
-                 f"{r['viability_max_violation']:>6.2g}")
+            line += (
+                f"{r['torque_box']:>13.0f}{r['overhead_pct/torque_box']:>8.1f}{r['overhead_cpu_pct/torque_box']:>8.1f}"
+            )
+        line += (
+            f"{r['shield_us']:>10.3f}{r['step_us']:>9.2f}{r['shield_cost_pct']:>9.1f}{r['compile_s']:>10.1f}"
+            f"{r['viability_max_violation']:>6.2g}"
+        )
         print(line)
-    print(f"Alg. 4 ({a4['arm']}, N={a4['n_samples']:.0e}): MJX {a4['mjx_s']:.2f} s (compile {a4['mjx_compile_s']:.1f} s), "
-          f"C loop mj_fullM+mj_rne {a4['c_loop_s']:.2f} s, speed-up x{a4['speedup_vs_c']:.1f}, "
-          f"max rel diff {a4['max_rel_diff']:.1e}")
+    print(
+        f"Alg. 4 ({a4['arm']}, N={a4['n_samples']:.0e}): MJX {a4['mjx_s']:.2f} s (compile {a4['mjx_compile_s']:.1f} s), "
+        f"C loop mj_fullM+mj_rne {a4['c_loop_s']:.2f} s, speed-up x{a4['speedup_vs_c']:.1f}, "
+        f"max rel diff {a4['max_rel_diff']:.1e}"
+    )
     print(f"  bounds lower {a4['lower']} upper {a4['upper']}; conservative box scale {a4['conservative_scale']:.3f}")
     wall = time.perf_counter() - t_start
     print(f"wall {wall:.1f} s ({repeats} interleaved rounds)")
     result = {
-        "benchmark": "bench_env", "quick": args.quick, "repeats": repeats, "throughput": rows, "alg4": a4,
-        "device": jax.devices()[0].platform, "cpu_count": os.cpu_count(), "machine": platform.machine(),
-        "jax_version": jax.__version__, "wall_s": wall,
+        "benchmark": "bench_env",
+        "quick": args.quick,
+        "repeats": repeats,
+        "throughput": rows,
+        "alg4": a4,
+        "device": jax.devices()[0].platform,
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "jax_version": jax.__version__,
+        "wall_s": wall,
     }
     print("JSON " + json.dumps(result))
 

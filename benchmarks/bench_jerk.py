@@ -59,8 +59,12 @@ def main():
     cases = {
         "viability": (lambda q, v, a: jl.acc_bounds(q, v, LIM, DT, method="viability"), batch),
         "jerk_zoh": (lambda q, v, a: jl.acc_bounds(q, v, LIM, DT, method="jerk", a_prev=a), batch),
-        "jerk_semi5": (lambda q, v, a: jl.acc_bounds(q, v, LIM, DT, method="jerk", integrator="semi_implicit",
-                                                     substeps=5, a_prev=a), batch),
+        "jerk_semi5": (
+            lambda q, v, a: jl.acc_bounds(
+                q, v, LIM, DT, method="jerk", integrator="semi_implicit", substeps=5, a_prev=a
+            ),
+            batch,
+        ),
         "is_viable_jerk": (lambda q, v, a: jl.is_viable_jerk(q, v, a, LIM, DT), batch),
         "jerk_paper": (lambda q, v, a: jl.acc_bounds(q, v, LIM, DT, method="jerk_paper", a_prev=a), paper_batch),
     }

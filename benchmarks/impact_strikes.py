@@ -83,11 +83,13 @@ def home_caps(env):
 
     def cap(q):
         M, J, nrm = env.impact_terms(q, jnp.zeros_like(q))
-        return jl.impact_speed_cap(M, J, nrm, q, jnp.zeros_like(q), lim, spec.tau_imp_max, env.dt, spec.c_range[1],
-                                   spec.dt_impact)
+        return jl.impact_speed_cap(
+            M, J, nrm, q, jnp.zeros_like(q), lim, spec.tau_imp_max, env.dt, spec.c_range[1], spec.dt_impact
+        )
 
-    qs = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(jax.random.PRNGKey(0), (512, env.n), jnp.float32,
-                                                              -env.q_noise, env.q_noise)
+    qs = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(
+        jax.random.PRNGKey(0), (512, env.n), jnp.float32, -env.q_noise, env.q_noise
+    )
     qs = qs.at[0].set(jnp.asarray(HOME, jnp.float32))  # the home posture first (one compilation)
     cs = jax.jit(jax.vmap(cap))(qs)
     c_home = jax.tree.map(lambda x: x[0], cs)
@@ -125,29 +127,60 @@ def main(argv=None):
     summ = {n: summary(env, res[n]) for n in names}
     c_home, caps = home_caps(env)
 
-    keys = ["strikes", "hits", "w_mean", "w_max", "tau_ratio_max", "tau_violations", "v_post_ratio_max", "v_post_violations",
-            "position_violations", "velocity_violations", "torque_violations", "infeasible_steps", "cap_mean",
-            "meas_over_rigid_c0_median", "meas_over_rigid_c0_max", "meas_over_rigid_cmax_max"]
+    keys = [
+        "strikes",
+        "hits",
+        "w_mean",
+        "w_max",
+        "tau_ratio_max",
+        "tau_violations",
+        "v_post_ratio_max",
+        "v_post_violations",
+        "position_violations",
+        "velocity_violations",
+        "torque_violations",
+        "infeasible_steps",
+        "cap_mean",
+        "meas_over_rigid_c0_median",
+        "meas_over_rigid_c0_max",
+        "meas_over_rigid_cmax_max",
+    ]
     print(f"{'':28s}" + "".join(f"{n:>22s}" for n in names))
     for k in keys:
         print(f"{k:28s}" + "".join(f"{summ[n][k]:>22.4g}" for n in names))
     spec = env.impact
-    print(f"\nbounds: tau_imp_max = {np.round(spec.tau_imp_max, 2).tolist()} N m (motor limits), v_max = "
-          f"{np.round(env.limits.v_max, 3).tolist()} rad/s, c in {spec.c_range} (c_max used), dt_impact = {spec.dt_impact} s, "
-          f"dt = {env.dt} s")
-    print(f"max feasible contact velocity at rest, home posture: {float(c_home.cap):.4f} m/s "
-          f"(position {float(c_home.position):.3g}, velocity {float(c_home.velocity):.3g}, torque {float(c_home.torque):.4f}); "
-          f"over 512 start states: min {caps.min():.4f}, median {np.median(caps):.4f}, max {caps.max():.4f} m/s")
+    print(
+        f"\nbounds: tau_imp_max = {np.round(spec.tau_imp_max, 2).tolist()} N m (motor limits), v_max = "
+        f"{np.round(env.limits.v_max, 3).tolist()} rad/s, c in {spec.c_range} (c_max used), dt_impact = {spec.dt_impact} s, "
+        f"dt = {env.dt} s"
+    )
+    print(
+        f"max feasible contact velocity at rest, home posture: {float(c_home.cap):.4f} m/s "
+        f"(position {float(c_home.position):.3g}, velocity {float(c_home.velocity):.3g}, torque {float(c_home.torque):.4f}); "
+        f"over 512 start states: min {caps.min():.4f}, median {np.median(caps):.4f}, max {caps.max():.4f} m/s"
+    )
     print("\nimpact speed vs measured impulsive torque (worst joint, over its bound)")
     print(f"{'shield':10s}{'w [m/s]':>14s}{'strikes':>9s}{'mean':>8s}{'max':>8s}")
     table = speed_table(env, res[names[0]], res[names[1]])
     for name, lo, hi, cnt, mean, mx in table:
         print(f"{name:10s}{f'[{lo:.2f},{hi:.2f})':>14s}{cnt:>9d}{mean:>8.3f}{mx:>8.3f}")
     print(f"\nwall time {wall:.1f} s")
-    print(json.dumps({"bench": "impact_strikes", "strikes": a.strikes, "steps": a.steps, "margin": a.margin,
-                      "wall_s": round(wall, 1), "cap_home": float(c_home.cap),
-                      "cap_start_min": float(caps.min()), "cap_start_median": float(np.median(caps)),
-                      "results": summ, "speed_table": table}))
+    print(
+        json.dumps(
+            {
+                "bench": "impact_strikes",
+                "strikes": a.strikes,
+                "steps": a.steps,
+                "margin": a.margin,
+                "wall_s": round(wall, 1),
+                "cap_home": float(c_home.cap),
+                "cap_start_min": float(caps.min()),
+                "cap_start_median": float(np.median(caps)),
+                "results": summ,
+                "speed_table": table,
+            }
+        )
+    )
     return summ
 
 

@@ -62,56 +62,56 @@ def _div(num, den, zero_over_zero=0.0):
 
 def acc_bounds_from_pos_limits(q, dq, q_min, q_max, dt):
     """Del Prete 2018, Algorithm 1 (accBoundsFromPosLimits), literally. Returns ``(LB, UB)``."""
-    ddq1_M = -dq / dt                                               # line 1
-    ddq2_M = _div(-dq * dq, 2.0 * (q_max - q))                      # line 2
-    ddq3_M = 2.0 * (q_max - q - dt * dq) / (dt * dt)                # line 3
-    ddq2_m = _div(dq * dq, 2.0 * (q - q_min))                       # line 4
-    ddq3_m = 2.0 * (q_min - q - dt * dq) / (dt * dt)                # line 5
-    if dq >= 0.0:                                                   # line 6
-        ddq_LB = ddq3_m                                             # line 7
-        if ddq3_M > ddq1_M:                                         # line 8
-            ddq_UB = ddq3_M                                         # line 9
-        else:                                                       # line 10
-            ddq_UB = min(ddq1_M, ddq2_M)                            # line 11
-    else:                                                           # line 12
-        ddq_UB = ddq3_M                                             # line 13
-        if ddq3_m < ddq1_M:                                         # line 14
-            ddq_LB = ddq3_m                                         # line 15
-        else:                                                       # line 16
-            ddq_LB = max(ddq1_M, ddq2_m)                            # line 17
-    return ddq_LB, ddq_UB                                           # line 18
+    ddq1_M = -dq / dt  # line 1
+    ddq2_M = _div(-dq * dq, 2.0 * (q_max - q))  # line 2
+    ddq3_M = 2.0 * (q_max - q - dt * dq) / (dt * dt)  # line 3
+    ddq2_m = _div(dq * dq, 2.0 * (q - q_min))  # line 4
+    ddq3_m = 2.0 * (q_min - q - dt * dq) / (dt * dt)  # line 5
+    if dq >= 0.0:  # line 6
+        ddq_LB = ddq3_m  # line 7
+        if ddq3_M > ddq1_M:  # line 8
+            ddq_UB = ddq3_M  # line 9
+        else:  # line 10
+            ddq_UB = min(ddq1_M, ddq2_M)  # line 11
+    else:  # line 12
+        ddq_UB = ddq3_M  # line 13
+        if ddq3_m < ddq1_M:  # line 14
+            ddq_LB = ddq3_m  # line 15
+        else:  # line 16
+            ddq_LB = max(ddq1_M, ddq2_m)  # line 17
+    return ddq_LB, ddq_UB  # line 18
 
 
 def acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt):
     """Del Prete 2018, Algorithm 2 (accBoundsFromViability), literally. Returns ``(LB, UB)``."""
-    a = dt * dt                                                     # line 1
-    b = dt * (2.0 * dq + ddq_max * dt)                              # line 2
-    c = dq * dq - 2.0 * ddq_max * (q_max - q - dt * dq)             # line 3
-    ddq_1 = -dq / dt                                                # line 4
-    delta = b * b - 4.0 * a * c                                     # line 5
-    if delta >= 0.0:                                                # line 6
-        ddq_UB = max(ddq_1, (-b + math.sqrt(delta)) / (2.0 * a))    # line 7
-    else:                                                           # line 8
-        ddq_UB = ddq_1                                              # line 9
-    b = 2.0 * dt * dq - ddq_max * dt * dt                           # line 10
-    c = dq * dq - 2.0 * ddq_max * (q + dt * dq - q_min)             # line 11
-    delta = b * b - 4.0 * a * c                                     # line 12
-    if delta >= 0.0:                                                # line 13
-        ddq_LB = min(ddq_1, (-b - math.sqrt(delta)) / (2.0 * a))    # line 14
-    else:                                                           # line 15
-        ddq_LB = ddq_1                                              # line 16
-    return ddq_LB, ddq_UB                                           # line 17
+    a = dt * dt  # line 1
+    b = dt * (2.0 * dq + ddq_max * dt)  # line 2
+    c = dq * dq - 2.0 * ddq_max * (q_max - q - dt * dq)  # line 3
+    ddq_1 = -dq / dt  # line 4
+    delta = b * b - 4.0 * a * c  # line 5
+    if delta >= 0.0:  # line 6
+        ddq_UB = max(ddq_1, (-b + math.sqrt(delta)) / (2.0 * a))  # line 7
+    else:  # line 8
+        ddq_UB = ddq_1  # line 9
+    b = 2.0 * dt * dq - ddq_max * dt * dt  # line 10
+    c = dq * dq - 2.0 * ddq_max * (q + dt * dq - q_min)  # line 11
+    delta = b * b - 4.0 * a * c  # line 12
+    if delta >= 0.0:  # line 13
+        ddq_LB = min(ddq_1, (-b - math.sqrt(delta)) / (2.0 * a))  # line 14
+    else:  # line 15
+        ddq_LB = ddq_1  # line 16
+    return ddq_LB, ddq_UB  # line 17
 
 
 def _paper_viability(q, dq, q_min, q_max, dq_max, ddq_max, dt):
     """Del Prete 2018, Algorithm 3 (Compute Joint Acceleration Bounds), literally."""
-    ddq_UB = [0.0, 0.0, 0.0, ddq_max]                               # line 1
-    ddq_LB = [0.0, 0.0, 0.0, -ddq_max]                              # line 2
+    ddq_UB = [0.0, 0.0, 0.0, ddq_max]  # line 1
+    ddq_LB = [0.0, 0.0, 0.0, -ddq_max]  # line 2
     ddq_LB[0], ddq_UB[0] = acc_bounds_from_pos_limits(q, dq, q_min, q_max, dt)  # line 3
-    ddq_LB[1] = (-dq_max - dq) / dt                                 # line 4
-    ddq_UB[1] = (dq_max - dq) / dt                                  # line 5
+    ddq_LB[1] = (-dq_max - dq) / dt  # line 4
+    ddq_UB[1] = (dq_max - dq) / dt  # line 5
     ddq_LB[2], ddq_UB[2] = acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt)  # line 6
-    return max(ddq_LB), min(ddq_UB)                                 # line 7
+    return max(ddq_LB), min(ddq_UB)  # line 7
 
 
 def _paper_naive(q, dq, q_min, q_max, dq_max, ddq_max, dt):

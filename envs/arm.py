@@ -34,7 +34,7 @@ from mujoco import mjx
 
 with warnings.catch_warnings():  # brax imports jaxopt, which warns that it is unmaintained
     warnings.simplefilter("ignore", DeprecationWarning)
-    from brax.envs.base import Env, State, Wrapper
+    from brax.envs.base import Env, State, Wrapper  # noqa: F401 (Wrapper: re-exported for the wrappers)
 
 import jaxlimits as jl
 import jaxlimits.torque as _torque
@@ -79,9 +79,13 @@ def load_arm(xml_path) -> mujoco.MjModel:
     if not np.all(mjm.jnt_limited) or not np.all(mjm.actuator_ctrllimited):
         raise ValueError(f"{xml_path}: every joint needs a range and every motor a ctrlrange")
     if mjm.opt.integrator not in _SEMI_IMPLICIT:
-        raise ValueError(f"{xml_path}: integrator must be Euler or implicitfast (semi-implicit), got {mjm.opt.integrator}")
+        raise ValueError(
+            f"{xml_path}: integrator must be Euler or implicitfast (semi-implicit), got {mjm.opt.integrator}"
+        )
     if np.any(mjm.dof_damping != 0) or np.any(mjm.jnt_stiffness != 0):
-        raise ValueError(f"{xml_path}: joint damping and stiffness must be 0 (commanded accelerations are realised exactly)")
+        raise ValueError(
+            f"{xml_path}: joint damping and stiffness must be 0 (commanded accelerations are realised exactly)"
+        )
     return mjm
 
 
@@ -152,9 +156,20 @@ class ArmReach(Env):
     reading/rendering), ``sys`` (the MJX model used for simulation, limits disabled).
     """
 
-    def __init__(self, xml_path, ee_site: str, target_low, target_high, torque_samples: int = 20000,
-                 torque_margin: float = 0.8, reset_margin: float = 0.1, seed: int = 0, target: str = "reachable",
-                 ik_observation: bool = False, precision_reward: float = 0.0):
+    def __init__(
+        self,
+        xml_path,
+        ee_site: str,
+        target_low,
+        target_high,
+        torque_samples: int = 20000,
+        torque_margin: float = 0.8,
+        reset_margin: float = 0.1,
+        seed: int = 0,
+        target: str = "reachable",
+        ik_observation: bool = False,
+        precision_reward: float = 0.0,
+    ):
         mjm = load_arm(xml_path)
         self.mj_model = mjm
         self.xml_path = pathlib.Path(xml_path)
@@ -166,7 +181,9 @@ class ArmReach(Env):
         j_max = _numeric(mjm, "jaxlimits_j_max", n)
         skip = _numeric(mjm, "jaxlimits_frame_skip")
         if v_max is None or a_nom is None or skip is None:
-            raise ValueError(f"{xml_path}: custom numerics jaxlimits_v_max, jaxlimits_a_max and jaxlimits_frame_skip are required")
+            raise ValueError(
+                f"{xml_path}: custom numerics jaxlimits_v_max, jaxlimits_a_max and jaxlimits_frame_skip are required"
+            )
         self.frame_skip = int(skip[0])
         self.dt = float(mjm.opt.timestep) * self.frame_skip
         self.integrator = "semi_implicit"
@@ -295,8 +312,9 @@ class ArmReach(Env):
         info = dict(state.info)
         info["a_prev"] = a
         reward = -dist + self.precision_reward * (1.0 - jnp.tanh(dist / PRECISION_SCALE))
-        return state.replace(pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero,
-                             metrics=metrics, info=info)
+        return state.replace(
+            pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero, metrics=metrics, info=info
+        )
 
     def _limit_metrics(self, state: State, d, a, qs, vs, accs, taus) -> dict:
         """``state.metrics`` updated with one step's ``violation/*``, ``count/*``, ``accel_error`` and
@@ -313,7 +331,9 @@ class ArmReach(Env):
             "position": excess(jnp.maximum(qs - f(lim.q_max)[None], f(lim.q_min)[None] - qs)),
             "velocity": excess(jnp.abs(vs) - f(lim.v_max)[None]),
             "acceleration": excess(jnp.abs(a) - f(lim.a_max)),
-            "jerk": excess(jnp.abs(a - state.info["a_prev"]) - f(lim.j_max) * self.dt) if lim.j_max is not None else zero,
+            "jerk": excess(jnp.abs(a - state.info["a_prev"]) - f(lim.j_max) * self.dt)
+            if lim.j_max is not None
+            else zero,
             "torque": excess(jnp.abs(taus) - f(self.tau_max)[None]),
         }
         d0 = state.pipeline_state

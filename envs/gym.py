@@ -57,8 +57,14 @@ def _arm(name: str, ik_observation: bool = False, precision_reward: float = 0.0)
 
 
 @functools.cache
-def _batched(arm: str, shield: str, torque_box: bool = False, action_mode: str = "acceleration",
-             ik_observation: bool = False, precision_reward: float = 0.0):
+def _batched(
+    arm: str,
+    shield: str,
+    torque_box: bool = False,
+    action_mode: str = "acceleration",
+    ik_observation: bool = False,
+    precision_reward: float = 0.0,
+):
     """Jitted ``reset(keys)`` and ``step(states, actions)`` for a batch of shielded envs, the
     ``SafetyWrapper`` and the outer env (with the action mode) (cached)."""
     shielded = SafetyWrapper(_arm(arm, bool(ik_observation), float(precision_reward)), shield, torque_box=torque_box)
@@ -81,14 +87,26 @@ def _infos(states) -> dict:
 class _Core:
     """Shared state handling for ``ArmEnv`` and ``ArmVectorEnv``."""
 
-    def _setup(self, arm: str, shield: str, num_envs: int, render_mode, width: int, height: int, torque_box: bool = False,
-               action_mode: str = "acceleration", ik_observation: bool = False, precision_reward: float = 0.0):
+    def _setup(
+        self,
+        arm: str,
+        shield: str,
+        num_envs: int,
+        render_mode,
+        width: int,
+        height: int,
+        torque_box: bool = False,
+        action_mode: str = "acceleration",
+        ik_observation: bool = False,
+        precision_reward: float = 0.0,
+    ):
         if arm not in ARMS:
             raise ValueError(f"arm must be one of {tuple(ARMS)}, got {arm!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self._reset_fn, self._step_fn, self._wrapped, outer = _batched(
-            arm, shield, bool(torque_box), action_mode, bool(ik_observation), float(precision_reward))
+            arm, shield, bool(torque_box), action_mode, bool(ik_observation), float(precision_reward)
+        )
         env = self._wrapped.env
         self.arm, self.shield = arm, shield
         self._B = num_envs
@@ -137,11 +155,21 @@ class ArmEnv(_Core, gymnasium.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 100}
 
-    def __init__(self, arm: str = "planar", shield: str = "viability", render_mode=None, width: int = 240, height: int = 240,
-                 torque_box: bool = False, action_mode: str = "acceleration", ik_observation: bool = False,
-                 precision_reward: float = 0.0):
-        env, self.observation_space, self.action_space = self._setup(arm, shield, 1, render_mode, width, height, torque_box,
-                                                                     action_mode, ik_observation, precision_reward)
+    def __init__(
+        self,
+        arm: str = "planar",
+        shield: str = "viability",
+        render_mode=None,
+        width: int = 240,
+        height: int = 240,
+        torque_box: bool = False,
+        action_mode: str = "acceleration",
+        ik_observation: bool = False,
+        precision_reward: float = 0.0,
+    ):
+        env, self.observation_space, self.action_space = self._setup(
+            arm, shield, 1, render_mode, width, height, torque_box, action_mode, ik_observation, precision_reward
+        )
         self.render_mode = render_mode
         self.metadata = dict(self.metadata, render_fps=int(round(1.0 / env.dt)))
 
@@ -156,8 +184,10 @@ class ArmEnv(_Core, gymnasium.Env):
         a = jnp.asarray(np.asarray(action, np.float32).reshape(1, self._n))
         self._states = self._step_fn(self._states, a)
         info = _infos(self._states)
-        info = {"violation": {k: float(v[0]) for k, v in info["violation"].items()},
-                **{k: v[0] for k, v in info.items() if k != "violation"}}
+        info = {
+            "violation": {k: float(v[0]) for k, v in info["violation"].items()},
+            **{k: v[0] for k, v in info.items() if k != "violation"},
+        }
         return (np.asarray(self._states.obs[0], np.float32), float(self._states.reward[0]), False, False, info)
 
     def render(self):
@@ -174,11 +204,23 @@ class ArmVectorEnv(_Core, VectorEnv):
 
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, num_envs: int, arm: str = "planar", shield: str = "viability", max_episode_steps: int = 500,
-                 render_mode=None, width: int = 240, height: int = 240, torque_box: bool = False,
-                 action_mode: str = "acceleration", ik_observation: bool = False, precision_reward: float = 0.0):
-        env, obs1, act1 = self._setup(arm, shield, num_envs, render_mode, width, height, torque_box, action_mode,
-                                      ik_observation, precision_reward)
+    def __init__(
+        self,
+        num_envs: int,
+        arm: str = "planar",
+        shield: str = "viability",
+        max_episode_steps: int = 500,
+        render_mode=None,
+        width: int = 240,
+        height: int = 240,
+        torque_box: bool = False,
+        action_mode: str = "acceleration",
+        ik_observation: bool = False,
+        precision_reward: float = 0.0,
+    ):
+        env, obs1, act1 = self._setup(
+            arm, shield, num_envs, render_mode, width, height, torque_box, action_mode, ik_observation, precision_reward
+        )
         self.num_envs = num_envs
         self.single_observation_space, self.single_action_space = obs1, act1
         self.observation_space = gymnasium.vector.utils.batch_space(obs1, num_envs)
@@ -214,15 +256,20 @@ class ArmVectorEnv(_Core, VectorEnv):
             self._key, sub = jax.random.split(self._key)
             fresh = self._reset_fn(jax.random.split(sub, self.num_envs))
             mask = jnp.asarray(truncated)
-            self._states = jax.tree.map(lambda f, s: jnp.where(mask.reshape((-1,) + (1,) * (s.ndim - 1)), f, s),
-                                        fresh, self._states)
+            self._states = jax.tree.map(
+                lambda f, s: jnp.where(mask.reshape((-1,) + (1,) * (s.ndim - 1)), f, s), fresh, self._states
+            )
             obs = np.asarray(self._states.obs, np.float32)
             self._t[truncated] = 0
             # top-level info of the reset envs: the fresh state's, as Gymnasium's SAME_STEP autoreset gives
-            info = jax.tree.map(lambda r, f: np.where(truncated.reshape((-1,) + (1,) * (f.ndim - 1)), r, f),
-                                self._reset_info(self._states), final_info)
-            info.update(final_obs=final_obs, _final_obs=truncated.copy(), final_info=final_info,
-                        _final_info=truncated.copy())
+            info = jax.tree.map(
+                lambda r, f: np.where(truncated.reshape((-1,) + (1,) * (f.ndim - 1)), r, f),
+                self._reset_info(self._states),
+                final_info,
+            )
+            info.update(
+                final_obs=final_obs, _final_obs=truncated.copy(), final_info=final_info, _final_info=truncated.copy()
+            )
         return obs, reward, terminated, truncated, info
 
     def render(self):

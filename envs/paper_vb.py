@@ -80,8 +80,11 @@ def run(steps: int = 300, kp: float = 10.0, dt_factors=(1.0, 2.0)):
 
         def body_fn(s, _):
             s = jax.vmap(one)(s, jnp.arange(len(cases)))
-            return s, (s.pipeline_state.qpos[:, ELBOW], s.pipeline_state.qvel[:, ELBOW],
-                       jnp.linalg.norm(s.pipeline_state.site_xpos[:, env.ee_site] - x_d[None], axis=-1))
+            return s, (
+                s.pipeline_state.qpos[:, ELBOW],
+                s.pipeline_state.qvel[:, ELBOW],
+                jnp.linalg.norm(s.pipeline_state.site_xpos[:, env.ee_site] - x_d[None], axis=-1),
+            )
 
         _, traj = jax.lax.scan(body_fn, states, None, length=steps)
         return traj
@@ -105,12 +108,18 @@ def run(steps: int = 300, kp: float = 10.0, dt_factors=(1.0, 2.0)):
 
 def main():
     env, out = run()
-    print(f"Panda elbow (joint4) toward its lower limit {env.limits.q_min[ELBOW]:.4f} rad, dt = {env.dt} s, "
-          f"a_max(joint4) = {env.limits.a_max[ELBOW]:.3f} rad/s^2 (torque-derived)")
-    print(f"{'bounds':<18}{'min q - q_min':>15}{'|v| there':>11}{'t [s]':>7}{'|v| crossing':>14}{'steps past':>12}{'ee err m':>10}")
+    print(
+        f"Panda elbow (joint4) toward its lower limit {env.limits.q_min[ELBOW]:.4f} rad, dt = {env.dt} s, "
+        f"a_max(joint4) = {env.limits.a_max[ELBOW]:.3f} rad/s^2 (torque-derived)"
+    )
+    print(
+        f"{'bounds':<18}{'min q - q_min':>15}{'|v| there':>11}{'t [s]':>7}{'|v| crossing':>14}{'steps past':>12}{'ee err m':>10}"
+    )
     for k, r in out.items():
-        print(f"{k:<18}{r['min_q_minus_limit']:>15.4g}{r['speed_at_min']:>11.3g}{r['time_at_min_s']:>7.2f}"
-              f"{r['speed_when_crossing']:>14.3g}{r['steps_past_limit']:>12d}{r['final_ee_error_m']:>10.3f}")
+        print(
+            f"{k:<18}{r['min_q_minus_limit']:>15.4g}{r['speed_at_min']:>11.3g}{r['time_at_min_s']:>7.2f}"
+            f"{r['speed_when_crossing']:>14.3g}{r['steps_past_limit']:>12d}{r['final_ee_error_m']:>10.3f}"
+        )
     print("JSON " + json.dumps(out))
 
 

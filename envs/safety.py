@@ -95,8 +95,16 @@ class SafetyWrapper(Wrapper):
     ``adversarial_rollout`` reports under).
     """
 
-    def __init__(self, env: ArmReach, method: str = "viability", dt_factor: float = 1.0, torque_box: bool = False,
-                 torque_box_margin: float = 0.95, impact=None, gradient: str = "exact"):
+    def __init__(
+        self,
+        env: ArmReach,
+        method: str = "viability",
+        dt_factor: float = 1.0,
+        torque_box: bool = False,
+        torque_box_margin: float = 0.95,
+        impact=None,
+        gradient: str = "exact",
+    ):
         super().__init__(env)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -116,7 +124,9 @@ class SafetyWrapper(Wrapper):
         self.dt_factor = float(dt_factor)
         substeps = env.frame_skip * self.dt_factor
         if self.dt_factor < 1.0 or abs(substeps - round(substeps)) > 1e-9:
-            raise ValueError(f"dt_factor * frame_skip must be an integer >= frame_skip, got {dt_factor} * {env.frame_skip}")
+            raise ValueError(
+                f"dt_factor * frame_skip must be an integer >= frame_skip, got {dt_factor} * {env.frame_skip}"
+            )
         self.substeps = int(round(substeps))
         self.dt_bounds = env.dt * self.dt_factor
         if method in ("naive", "viability", "jerk"):
@@ -129,9 +139,16 @@ class SafetyWrapper(Wrapper):
         if impact is None or impact is False:
             return None
         if not hasattr(env, "impact_terms") or not hasattr(env, "impact"):
-            raise ValueError(f"impact= needs an env with impact_terms and an impact spec (WallStrike), got {type(env).__name__}")
-        opts = {"c_range": env.impact.c_range, "dt_impact": env.impact.dt_impact,
-                "tau_imp_max": np.asarray(env.impact.tau_imp_max, np.float64), "margin": 1.0, "reg": _impact.DEFAULT_REG}
+            raise ValueError(
+                f"impact= needs an env with impact_terms and an impact spec (WallStrike), got {type(env).__name__}"
+            )
+        opts = {
+            "c_range": env.impact.c_range,
+            "dt_impact": env.impact.dt_impact,
+            "tau_imp_max": np.asarray(env.impact.tau_imp_max, np.float64),
+            "margin": 1.0,
+            "reg": _impact.DEFAULT_REG,
+        }
         if impact is not True:
             unknown = set(impact) - set(opts)
             if unknown:
@@ -143,7 +160,9 @@ class SafetyWrapper(Wrapper):
             raise ValueError(f"impact: tau_imp_max must be finite and > 0, got {tau.tolist()}")
         opts["tau_imp_max"] = tau
         if not (float(opts["dt_impact"]) > 0 and 0 < float(opts["margin"]) <= 1.0):
-            raise ValueError(f"impact: need dt_impact > 0 and 0 < margin <= 1, got {opts['dt_impact']}, {opts['margin']}")
+            raise ValueError(
+                f"impact: need dt_impact > 0 and 0 < margin <= 1, got {opts['dt_impact']}, {opts['margin']}"
+            )
         return opts
 
     def impact_cap(self, state: State, lower, upper):
@@ -163,8 +182,20 @@ class SafetyWrapper(Wrapper):
         hi = (v + dt * upper).reshape((-1, n))
         qf, vf = q.reshape((-1, n)), v.reshape((-1, n))
         M, J, nrm = jax.vmap(self.env.impact_terms)(qf, vf)
-        cap = _impact.impact_speed_cap(M, J, nrm, qf, vf, self.limits, o["tau_imp_max"], dt, o["c_max"],
-                                       o["dt_impact"], o["reg"], v_pre_range=(jnp.minimum(lo, hi), jnp.maximum(lo, hi))).cap
+        cap = _impact.impact_speed_cap(
+            M,
+            J,
+            nrm,
+            qf,
+            vf,
+            self.limits,
+            o["tau_imp_max"],
+            dt,
+            o["c_max"],
+            o["dt_impact"],
+            o["reg"],
+            v_pre_range=(jnp.minimum(lo, hi), jnp.maximum(lo, hi)),
+        ).cap
         cap = cap * jnp.float32(o["margin"])
         G, h = _impact.speed_cap_halfspace(M, J, nrm, vf, cap, dt)
         u = -_impact.impact_jump(M, J, nrm, vf, 0.0, 1.0, o["reg"]).dq_dw  # u = M^-1 J^T M_eq n̂
@@ -213,8 +244,11 @@ class SafetyWrapper(Wrapper):
             big = jnp.full_like(d.qpos, jnp.inf)
             return jl.Bounds(-big, big, jnp.ones(d.qpos.shape, bool))
         if self.method == "clip":
-            return jl.Bounds(jnp.broadcast_to(-a_max, d.qpos.shape), jnp.broadcast_to(a_max, d.qpos.shape),
-                             jnp.ones(d.qpos.shape, bool))
+            return jl.Bounds(
+                jnp.broadcast_to(-a_max, d.qpos.shape),
+                jnp.broadcast_to(a_max, d.qpos.shape),
+                jnp.ones(d.qpos.shape, bool),
+            )
         kwargs = dict(method=self.method, integrator=self.env.integrator, substeps=self.substeps)
         if self.method == "jerk":
             kwargs["a_prev"] = state.info["a_prev"] if a_prev is None else a_prev
@@ -280,8 +314,13 @@ class SafetyWrapper(Wrapper):
         if self.impact:
             metrics.update(impact_cap=zero, impact_infeasible=zero)
         n = self.env.n
-        info = dict(state.info, a_des=jnp.zeros((n,), jnp.float32), a_safe=jnp.zeros((n,), jnp.float32),
-                    lower=jnp.zeros((n,), jnp.float32), upper=jnp.zeros((n,), jnp.float32))
+        info = dict(
+            state.info,
+            a_des=jnp.zeros((n,), jnp.float32),
+            a_safe=jnp.zeros((n,), jnp.float32),
+            lower=jnp.zeros((n,), jnp.float32),
+            upper=jnp.zeros((n,), jnp.float32),
+        )
         return state.replace(metrics=metrics, info=info)
 
 
@@ -342,8 +381,10 @@ def adversarial_rollout(env: ArmReach, methods, batch, steps: int, seed: int = 0
             lower = jnp.stack([c[1].lower for c in cands])[mid]
             upper = jnp.stack([c[1].upper for c in cands])[mid]
             viable = jnp.stack([c[1].viable for c in cands])[mid]
-            extra = {k: jnp.stack([c[2].get(k, jnp.asarray(d, jnp.float32)) for c in cands])[mid]
-                     for k, d in _EXTRA_DEFAULTS.items()}
+            extra = {
+                k: jnp.stack([c[2].get(k, jnp.asarray(d, jnp.float32)) for c in cands])[mid]
+                for k, d in _EXTRA_DEFAULTS.items()
+            }
             ns = wrappers[0].finish(state, a_des, a_safe, jl.Bounds(lower, upper, viable), extra)
             return ns.replace(info=state.info | {"a_prev": ns.info["a_prev"], "target": ns.info["target"]})
 
@@ -361,15 +402,23 @@ def adversarial_rollout(env: ArmReach, methods, batch, steps: int, seed: int = 0
                 "model_error": jnp.maximum(acc["model_error"], m["model_error"]),
                 "intervention": acc["intervention"] + m["intervention"],
                 "count/torque_box_conflict": acc["count/torque_box_conflict"] + m["torque_box_conflict"],
-                "count/torque_unflagged": acc["count/torque_unflagged"] + m["count/torque"] * (1.0 - m["torque_box_conflict"]),
+                "count/torque_unflagged": acc["count/torque_unflagged"]
+                + m["count/torque"] * (1.0 - m["torque_box_conflict"]),
                 "min/torque_box_scale": jnp.minimum(acc["min/torque_box_scale"], m["torque_box_scale"]),
             }
             return (ns.replace(metrics=states.metrics), acc), None
 
         zeros = jnp.zeros((B,), jnp.float32)
-        acc0 = {**{f"count/{k}": zeros for k in VIOLATION_KEYS}, **{f"max/{k}": zeros for k in VIOLATION_KEYS},
-                "accel_error": zeros, "model_error": zeros, "intervention": zeros,
-                "count/torque_box_conflict": zeros, "count/torque_unflagged": zeros, "min/torque_box_scale": jnp.full((B,), jnp.inf, jnp.float32)}
+        acc0 = {
+            **{f"count/{k}": zeros for k in VIOLATION_KEYS},
+            **{f"max/{k}": zeros for k in VIOLATION_KEYS},
+            "accel_error": zeros,
+            "model_error": zeros,
+            "intervention": zeros,
+            "count/torque_box_conflict": zeros,
+            "count/torque_unflagged": zeros,
+            "min/torque_box_scale": jnp.full((B,), jnp.inf, jnp.float32),
+        }
         states0 = states
         (_, acc), _ = jax.lax.scan(body, (states, acc0), jnp.arange(steps))
         return acc, method_id, policy

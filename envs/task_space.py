@@ -96,8 +96,16 @@ class TaskSpaceActions(Wrapper):
         q = state.pipeline_state.qpos
         dr = jnp.asarray(action, jnp.float32) * jnp.float32(self.step_size)
         J = self.jacobian(q)
-        res = jl.timescale_ik(J, dr, self._v_max, t_min=self.dt, alpha=self.alpha, r_norm_max=self.ee_speed_max,
-                              dq_min=jnp.minimum(self._q_min - q, 0.0), dq_max=jnp.maximum(self._q_max - q, 0.0))
+        res = jl.timescale_ik(
+            J,
+            dr,
+            self._v_max,
+            t_min=self.dt,
+            alpha=self.alpha,
+            r_norm_max=self.ee_speed_max,
+            dq_min=jnp.minimum(self._q_min - q, 0.0),
+            dq_max=jnp.maximum(self._q_max - q, 0.0),
+        )
         return res, dr, J
 
     def reset(self, rng) -> State:

@@ -111,10 +111,24 @@ class WallStrike(ArmReach):
       **kwargs: ``ArmReach``'s (``torque_samples``, ``torque_margin``, ``seed``).
     """
 
-    def __init__(self, normal=(1.0, 0.0, 0.0), gap_low: float = 0.005, gap_high: float = 0.05, q_noise: float = 0.1,
-                 c_range=(0.0, 0.2), dt_impact: float = 0.005, tau_imp_scale: float = 1.0, window: float = 0.02,
-                 impulse_limit: float = 2.0, contact_bonus: float = 1.0, ball_radius: float = 0.02, stop_fraction: float = 0.1,
-                 solref=(0.004, 1.0), friction: float = 1.0, **kwargs):
+    def __init__(
+        self,
+        normal=(1.0, 0.0, 0.0),
+        gap_low: float = 0.005,
+        gap_high: float = 0.05,
+        q_noise: float = 0.1,
+        c_range=(0.0, 0.2),
+        dt_impact: float = 0.005,
+        tau_imp_scale: float = 1.0,
+        window: float = 0.02,
+        impulse_limit: float = 2.0,
+        contact_bonus: float = 1.0,
+        ball_radius: float = 0.02,
+        stop_fraction: float = 0.1,
+        solref=(0.004, 1.0),
+        friction: float = 1.0,
+        **kwargs,
+    ):
         xml = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction))
         super().__init__(xml, "ee", (0.2, -0.5, 0.1), (0.9, 0.5, 0.9), target="box", **kwargs)
         nrm = np.asarray(normal, np.float64)
@@ -127,9 +141,12 @@ class WallStrike(ArmReach):
         self.q_noise = float(q_noise)
         _impact.check_restitution(*c_range)  # validates eagerly
         if not dt_impact > 0 or not window > 0 or not tau_imp_scale > 0:
-            raise ValueError(f"WallStrike: dt_impact, window, tau_imp_scale must be > 0, got {dt_impact}, {window}, {tau_imp_scale}")
-        self.impact = ImpactSpec(tuple(float(c) for c in c_range), float(dt_impact),
-                                 tau_imp_scale * self.tau_max, float(window))
+            raise ValueError(
+                f"WallStrike: dt_impact, window, tau_imp_scale must be > 0, got {dt_impact}, {window}, {tau_imp_scale}"
+            )
+        self.impact = ImpactSpec(
+            tuple(float(c) for c in c_range), float(dt_impact), tau_imp_scale * self.tau_max, float(window)
+        )
         self.h = float(self.mj_model.opt.timestep)
         self.window_substeps = max(1, int(round(window / self.h)))
         self.stop_fraction = float(stop_fraction)
@@ -149,7 +166,9 @@ class WallStrike(ArmReach):
     # ---- reset --------------------------------------------------------------------------------
     def reset(self, rng: jax.Array) -> State:
         k_q, k_g = jax.random.split(rng)
-        q = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(k_q, (self.n,), jnp.float32, -self.q_noise, self.q_noise)
+        q = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(
+            k_q, (self.n,), jnp.float32, -self.q_noise, self.q_noise
+        )
         gap = jax.random.uniform(k_g, (), jnp.float32, *self.gap)
         return self.reset_to_wall(q, jnp.zeros_like(q), gap)
 
@@ -160,20 +179,50 @@ class WallStrike(ArmReach):
         ball = self.ee_position(q)
         wall = ball + (self.ball_radius + jnp.asarray(gap, jnp.float32)) * nrm
         d = mjx.make_data(self.sys)
-        d = d.replace(qpos=self._f32(q), qvel=self._f32(v), mocap_pos=wall[None],
-                      mocap_quat=jnp.asarray(self.wall_quat, jnp.float32)[None])
+        d = d.replace(
+            qpos=self._f32(q),
+            qvel=self._f32(v),
+            mocap_pos=wall[None],
+            mocap_quat=jnp.asarray(self.wall_quat, jnp.float32)[None],
+        )
         d = mjx.fwd_position(self.sys, d)
         zero = jnp.zeros((), jnp.float32)
         metrics = {f"violation/{k}": zero for k in VIOLATION_KEYS}
         metrics.update({f"count/{k}": zero for k in VIOLATION_KEYS})
-        metrics.update({"distance": zero, "accel_error": zero, "model_error": zero, "contact": zero,
-                        "impact/hit": zero, "impact/w": zero, "impact/tau": zero, "impact/tau_contact": zero, "impact/v_post": zero,
-                        "impulse": zero})
+        metrics.update(
+            {
+                "distance": zero,
+                "accel_error": zero,
+                "model_error": zero,
+                "contact": zero,
+                "impact/hit": zero,
+                "impact/w": zero,
+                "impact/tau": zero,
+                "impact/tau_contact": zero,
+                "impact/v_post": zero,
+                "impulse": zero,
+            }
+        )
         n = self.n
         zn = jnp.zeros((n,), jnp.float32)
-        info = {"target": wall, "a_prev": zn, "gap": jnp.asarray(gap, jnp.float32),
-                "impact": {"hit": zero, "k": zero, "open": jnp.ones((), jnp.float32), "w": zero, "q_pre": zn, "v_pre": zn, "impulse": zn,
-                           "momentum": zn, "vmax": zn, "ball_prev": self._ball_center(d), "w_last": zero}}
+        info = {
+            "target": wall,
+            "a_prev": zn,
+            "gap": jnp.asarray(gap, jnp.float32),
+            "impact": {
+                "hit": zero,
+                "k": zero,
+                "open": jnp.ones((), jnp.float32),
+                "w": zero,
+                "q_pre": zn,
+                "v_pre": zn,
+                "impulse": zn,
+                "momentum": zn,
+                "vmax": zn,
+                "ball_prev": self._ball_center(d),
+                "w_last": zero,
+            },
+        }
         return State(d, self._obs(d, wall), zero, zero, metrics, info)
 
     def _ball_center(self, d):
@@ -237,7 +286,8 @@ class WallStrike(ArmReach):
         d0 = state.pipeline_state
         imp0 = state.info["impact"]
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
-            lambda c, _: self._substep_contact(c, a), (d0, imp0), None, length=self.frame_skip)
+            lambda c, _: self._substep_contact(c, a), (d0, imp0), None, length=self.frame_skip
+        )
         step_imp = jnp.sum(frcs, axis=0)
         d = mjx.fwd_position(self.sys, d)
         lim = self.limits
@@ -267,8 +317,9 @@ class WallStrike(ArmReach):
         info = dict(state.info)
         info["a_prev"] = a
         info["impact"] = imp
-        return state.replace(pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero,
-                             metrics=metrics, info=info)
+        return state.replace(
+            pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero, metrics=metrics, info=info
+        )
 
 
 def _solve(m, d):
@@ -365,9 +416,21 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
         acc0 = {"cap": z, "infeasible": z, "violation_position": z, "violation_velocity": z, "violation_torque": z}
         (final, acc), _ = jax.lax.scan(body, (states, acc0), None, length=steps)
         m, imp = final.metrics, final.info["impact"]
-        out = dict(acc, speed=speeds, gap=final.info["gap"], hit=m["impact/hit"], w=m["impact/w"], tau=m["impact/tau"],
-                   tau_contact=m["impact/tau_contact"], v_post=m["impact/v_post"], q_pre=imp["q_pre"], v_pre=imp["v_pre"],
-                   impulse=imp["impulse"], momentum=imp["momentum"], window=imp["k"])
+        out = dict(
+            acc,
+            speed=speeds,
+            gap=final.info["gap"],
+            hit=m["impact/hit"],
+            w=m["impact/w"],
+            tau=m["impact/tau"],
+            tau_contact=m["impact/tau_contact"],
+            v_post=m["impact/v_post"],
+            q_pre=imp["q_pre"],
+            v_pre=imp["v_pre"],
+            impulse=imp["impulse"],
+            momentum=imp["momentum"],
+            window=imp["k"],
+        )
         return out
 
     return run
@@ -385,5 +448,13 @@ def rigid_prediction(env: WallStrike, q_pre, v_pre, c: float):
     return jax.device_get(pred(jnp.asarray(q_pre, jnp.float32), jnp.asarray(v_pre, jnp.float32)))
 
 
-__all__ = ["HOME", "ImpactSpec", "WallStrike", "make_wall_strike", "rigid_prediction", "strike_command",
-           "strike_experiment", "wall_xml"]
+__all__ = [
+    "HOME",
+    "ImpactSpec",
+    "WallStrike",
+    "make_wall_strike",
+    "rigid_prediction",
+    "strike_command",
+    "strike_experiment",
+    "wall_xml",
+]

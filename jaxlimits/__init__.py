@@ -6,7 +6,14 @@ The core (this package, without ``jaxlimits.envs``/``jaxlimits.training``) needs
 from jaxlimits._src.bounds import acc_bounds, bound_terms, is_viable, is_viable_jerk
 from jaxlimits._src.compose import Intersection, intersect
 from jaxlimits._src.discretisation import INTEGRATORS, make_discretisation
-from jaxlimits._src.impact import ImpactJump, SpeedCap, equivalent_mass, impact_constraints, impact_jump, impact_speed_cap
+from jaxlimits._src.impact import (
+    ImpactJump,
+    SpeedCap,
+    equivalent_mass,
+    impact_constraints,
+    impact_jump,
+    impact_speed_cap,
+)
 from jaxlimits._src.impact_cap import ImpactCap
 from jaxlimits._src.integrate import Step, integrate_step
 from jaxlimits._src.jerk import Jerk

@@ -68,8 +68,16 @@ def _lp_first(q0, v0, a_prev, lim: JLimits1, T, integrator, n, H, samples, margi
     for sign in (1.0, -1.0):
         cost = np.zeros(H)
         cost[0] = sign
-        res = linprog(cost, A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=[(-lim.a_max, lim.a_max)] * H,
-                      method="highs", options=_HIGHS)
+        res = linprog(
+            cost,
+            A_ub=A_ub,
+            b_ub=b_ub,
+            A_eq=A_eq,
+            b_eq=b_eq,
+            bounds=[(-lim.a_max, lim.a_max)] * H,
+            method="highs",
+            options=_HIGHS,
+        )
         if res.status == 2:
             return None
         assert res.status == 0, res.message
@@ -207,6 +215,7 @@ def first_step_interval(q0, v0, lim: JLimits1, T):
     every plan; the sampled rows miss it when the step's extremum is before the first sample (a
     state just under a limit, nearly at rest).
     """
+
     def upper(d, v):
         if v > 0 and 2 * d <= v * T:
             return -v * v / (2 * d) if d > 0 else -math.inf
@@ -251,9 +260,16 @@ def _jerk_lp(q0, v0, a_prev, lim: JLimits1, T, integrator, n, H, samples, margin
             return None
     cost = np.zeros(H)
     cost[0] = objective or 0.0
-    res = linprog(cost, A_ub=sparse.csr_matrix(np.array(A_ub)), b_ub=np.array(b_ub),
-                  A_eq=np.array([g_end, last]), b_eq=np.array([-c_end, 0.0]), bounds=bounds, method="highs",
-                  options=_HIGHS)
+    res = linprog(
+        cost,
+        A_ub=sparse.csr_matrix(np.array(A_ub)),
+        b_ub=np.array(b_ub),
+        A_eq=np.array([g_end, last]),
+        b_eq=np.array([-c_end, 0.0]),
+        bounds=bounds,
+        method="highs",
+        options=_HIGHS,
+    )
     if res.status == 2:
         return None
     assert res.status == 0, res.message
@@ -275,7 +291,7 @@ def lp_jerk_bounds_exact_first(q0, v0, a_prev, lim: JLimits1, T, integrator="zoh
     H = horizon or default_horizon(lim, T)
     first = first_step_interval(q0, v0, lim, T) if integrator == "zoh" else None
     out = []
-    for margin in ((0.0, lim.a_max * (T / samples) ** 2 / 8.0) if integrator == "zoh" else (0.0,)):
+    for margin in (0.0, lim.a_max * (T / samples) ** 2 / 8.0) if integrator == "zoh" else (0.0,):
         pair = [_jerk_lp(q0, v0, a_prev, lim, T, integrator, n, H, samples, margin, first, s) for s in (1.0, -1.0)]
         out.append(None if None in pair else tuple(pair))
     if out[0] is None:

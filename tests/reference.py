@@ -148,8 +148,16 @@ def lp_bounds(q0, v0, lim: Limits1, T, integrator="zoh", n=1, horizon=None, samp
         cost[0] = sign
         rows, rhs = list(A_ub), list(b_ub)
         for _ in range(max_rounds):
-            res = linprog(cost, A_ub=np.array(rows), b_ub=np.array(rhs), A_eq=g_end[None], b_eq=[-c_end],
-                          bounds=[(-lim.a_max, lim.a_max)] * H, method="highs", options=_HIGHS)
+            res = linprog(
+                cost,
+                A_ub=np.array(rows),
+                b_ub=np.array(rhs),
+                A_eq=g_end[None],
+                b_eq=[-c_end],
+                bounds=[(-lim.a_max, lim.a_max)] * H,
+                method="highs",
+                options=_HIGHS,
+            )
             if res.status == 2:
                 return None
             assert res.status == 0, res.message
@@ -201,7 +209,9 @@ def certified_safe(q, v, a0, lim: Limits1, T, integrator="zoh", n=1, tol=1e-12, 
         else:
             q1, v1, lo, hi = semi_implicit_step(q, v, a, T, n)
             q1, v1, lo, hi = float(q1), float(v1), float(lo), float(hi)
-        ok = abs(a) <= lim.a_max + tol and lo >= lim.q_min - tol and hi <= lim.q_max + tol and abs(v1) <= lim.v_max + tol
+        ok = (
+            abs(a) <= lim.a_max + tol and lo >= lim.q_min - tol and hi <= lim.q_max + tol and abs(v1) <= lim.v_max + tol
+        )
         return ok, float(q1), float(v1)
 
     ok, q, v = step(q, v, a0)

@@ -84,5 +84,10 @@ def viable(q, v, q_min, q_max, v_max, a_max, T, n):
     """Membership of the viability kernel: inside the limits and full braking stops inside on both sides."""
     q, v = np.asarray(q, np.float64), np.asarray(v, np.float64)
     h = T / n
-    return ((q >= q_min) & (q <= q_max) & (np.abs(v) <= v_max)
-            & (braking_distance(v, a_max, h) <= q_max - q) & (braking_distance(-v, a_max, h) <= q - q_min))
+    return (
+        (q >= q_min)
+        & (q <= q_max)
+        & (np.abs(v) <= v_max)
+        & (braking_distance(v, a_max, h) <= q_max - q)
+        & (braking_distance(-v, a_max, h) <= q - q_min)
+    )

@@ -77,5 +77,7 @@ def test_layers_above_the_core_use_public_names():
             code = line.split("#")[0]
             assert "jaxlimits._src" not in code, f"{path.relative_to(ROOT)}:{i} imports jaxlimits._src: {line.strip()}"
             if "mujoco.mjx._src" in code:
-                assert "#" in line, f"{path.relative_to(ROOT)}:{i}: mjx._src without a comment saying why: {line.strip()}"
+                assert "#" in line, (
+                    f"{path.relative_to(ROOT)}:{i}: mjx._src without a comment saying why: {line.strip()}"
+                )
     assert seen > 20

@@ -20,13 +20,14 @@ def _positive(x) -> bool:
 
 @pytest.mark.slow
 def test_bench_bounds_quick_runs_and_reports_json():
-    proc = subprocess.run([sys.executable, str(SCRIPT), "--quick"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), "--quick"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
     json_lines = [line for line in proc.stdout.splitlines() if line.startswith("JSON ")]
     assert len(json_lines) == 1, proc.stdout[-3000:]
     assert proc.stdout.rstrip().splitlines()[-1] == json_lines[0]
-    result = json.loads(json_lines[0][len("JSON "):])
+    result = json.loads(json_lines[0][len("JSON ") :])
 
     assert result["quick"] is True
     assert result["cpu_count"] >= 1 and result["jax_version"]

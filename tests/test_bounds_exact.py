@@ -65,6 +65,7 @@ def test_closed_form_equals_long_horizon_lp(name, x64):
     states = sample_states(lim, STATES, np.random.default_rng(7))
     q = jnp.array([s[0] for s in states])
     v = jnp.array([s[1] for s in states])
+
     def bounds(q):
         return jl.acc_bounds(q, v, limits, T, integrator=integrator, substeps=n, rounding_guard=False)
 
@@ -81,7 +82,8 @@ def test_closed_form_equals_long_horizon_lp(name, x64):
         viable = bool(b.viable[i])
         # at the exact boundary the LP and the closed form may round either way
         on_edge = viable_reference(qi, vi, lim, integrator, T, n, tol=1e-10) != viable_reference(
-            qi, vi, lim, integrator, T, n, tol=-1e-10)
+            qi, vi, lim, integrator, T, n, tol=-1e-10
+        )
         if on_edge:
             continue
         lo, up = float(b.lower[i]), float(b.upper[i])
@@ -122,7 +124,9 @@ def test_safety_certificate_can_refuse(integrator, n, x64):
     lim, T = Limits1(-2.0, 2.0, 2.0, 12.0), 0.01
     limits = jl.JointLimits(lim.q_min, lim.q_max, lim.v_max, lim.a_max)
     for q, v in ((1.9, 1.5), (1.99, 0.3), (-1.95, -1.0)):
-        b = jl.acc_bounds(jnp.float64(q), jnp.float64(v), limits, T, integrator=integrator, substeps=n, rounding_guard=False)
+        b = jl.acc_bounds(
+            jnp.float64(q), jnp.float64(v), limits, T, integrator=integrator, substeps=n, rounding_guard=False
+        )
         up, lo = float(b.upper), float(b.lower)
         assert certified_safe(q, v, up, lim, T, integrator, n) and certified_safe(q, v, lo, lim, T, integrator, n)
         if up < lim.a_max:

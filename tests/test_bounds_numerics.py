@@ -14,7 +14,10 @@ import jaxlimits as jl
 from conftest import count_compilations
 
 LIM = jl.JointLimits(
-    q_min=[-2.0, -0.5, -1.0, -2.9], q_max=[2.0, 0.5, 1.5, 2.9], v_max=[2.0, 2.0, 1.0, 2.6], a_max=[12.0, 10.0, 8.0, 15.0]
+    q_min=[-2.0, -0.5, -1.0, -2.9],
+    q_max=[2.0, 0.5, 1.5, 2.9],
+    v_max=[2.0, 2.0, 1.0, 2.6],
+    a_max=[12.0, 10.0, 8.0, 15.0],
 )
 DT = 0.01
 MODELS = [("zoh", 1), ("semi_implicit", 1), ("semi_implicit", 5)]
@@ -36,10 +39,14 @@ def boundary_states():
     d = 0.3 * (q_max - q_min)
     v_curve = np.minimum(np.sqrt(2 * a_max * d), v_max)
     rows = [
-        (q_max, 0 * q_max), (q_min, 0 * q_min),                  # on a limit, at rest
-        (q_max - d, v_curve), (q_min + d, -v_curve),             # on the viability curve
-        ((q_min + q_max) / 2, v_max), ((q_min + q_max) / 2, -v_max),  # on the velocity limit
-        (q_max, -v_max), (q_min, v_max),                         # on a limit, leaving fast
+        (q_max, 0 * q_max),
+        (q_min, 0 * q_min),  # on a limit, at rest
+        (q_max - d, v_curve),
+        (q_min + d, -v_curve),  # on the viability curve
+        ((q_min + q_max) / 2, v_max),
+        ((q_min + q_max) / 2, -v_max),  # on the velocity limit
+        (q_max, -v_max),
+        (q_min, v_max),  # on a limit, leaving fast
     ]
     return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows])
 
@@ -155,15 +162,20 @@ def test_gradients_match_finite_differences_away_from_kinks(integrator, substeps
 
     @jax.jit
     def f(q, v):
-        return getattr(jl.acc_bounds(q, v, LIM, DT, integrator=integrator, substeps=substeps, rounding_guard=False), side)
+        return getattr(
+            jl.acc_bounds(q, v, LIM, DT, integrator=integrator, substeps=substeps, rounding_guard=False), side
+        )
 
     # eps small enough to stay inside one linear piece of the semi-implicit braking distance
     check_grads(f, (q, v), order=1, modes=("fwd", "rev"), eps=1e-7)
+
     # and with respect to a limit (a traced JointLimits field)
     @jax.jit
     def g(a_max):
         lim = jl.JointLimits(LIM.q_min, LIM.q_max, LIM.v_max, a_max)
-        return getattr(jl.acc_bounds(q, v, lim, DT, integrator=integrator, substeps=substeps, rounding_guard=False), side)
+        return getattr(
+            jl.acc_bounds(q, v, lim, DT, integrator=integrator, substeps=substeps, rounding_guard=False), side
+        )
 
     check_grads(g, (jnp.asarray(LIM.a_max),), order=1, modes=("fwd", "rev"), eps=1e-7)
 

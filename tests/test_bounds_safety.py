@@ -92,8 +92,15 @@ def near_limit_states(draw):
 def bounds64(name, q, v, rounding_guard=True):
     lim, T, integrator, n = CONFIGS[name]
     with jax.enable_x64(True):
-        b = jl.acc_bounds(jnp.float64(q), jnp.float64(v), jl_limits(lim), T, integrator=integrator,
-                          substeps=n, rounding_guard=rounding_guard)
+        b = jl.acc_bounds(
+            jnp.float64(q),
+            jnp.float64(v),
+            jl_limits(lim),
+            T,
+            integrator=integrator,
+            substeps=n,
+            rounding_guard=rounding_guard,
+        )
         return float(b.lower), float(b.upper), bool(b.viable)
 
 
@@ -101,8 +108,13 @@ def is_safe_step(q, v, a, name, tol=1e-12):
     """Whether a held ``a`` keeps every limit during the step and leaves a viable state."""
     lim, T, integrator, n = CONFIGS[name]
     q1, v1, q_lo, q_hi = simulate(q, v, a, T, integrator, n)
-    return (abs(a) <= lim.a_max + tol and q_lo >= lim.q_min - tol and q_hi <= lim.q_max + tol
-            and abs(v1) <= lim.v_max + tol and viable_reference(q1, v1, lim, integrator, T, n, tol=tol))
+    return (
+        abs(a) <= lim.a_max + tol
+        and q_lo >= lim.q_min - tol
+        and q_hi <= lim.q_max + tol
+        and abs(v1) <= lim.v_max + tol
+        and viable_reference(q1, v1, lim, integrator, T, n, tol=tol)
+    )
 
 
 @given(near_limit_states(), st.floats(0.0, 1.0))
@@ -159,9 +171,12 @@ def violates_under_full_braking(q, v, a, name):
     raise AssertionError("full braking did not stop")
 
 
-CURVE_EXAMPLES = [dict(name=name, v_frac=v_frac, rel=0.0, kink=kink, upper_side=side)
-                  for name in ("fig4-zoh", "fig4-semi5", "edge11-semi7", "slow-semi5")
-                  for v_frac, kink in ((1.0, False), (0.37, False), (0.37, True)) for side in (True, False)]
+CURVE_EXAMPLES = [
+    dict(name=name, v_frac=v_frac, rel=0.0, kink=kink, upper_side=side)
+    for name in ("fig4-zoh", "fig4-semi5", "edge11-semi7", "slow-semi5")
+    for v_frac, kink in ((1.0, False), (0.37, False), (0.37, True))
+    for side in (True, False)
+]
 
 
 def _with_examples(test):
@@ -171,9 +186,13 @@ def _with_examples(test):
 
 
 @settings(max_examples=60)
-@given(name=st.sampled_from(sorted(CONFIGS)), v_frac=st.floats(0.0, 1.0),
-       rel=st.one_of(st.just(0.0), st.floats(-15.0, -3.0).map(lambda x: 10.0 ** x)),
-       kink=st.booleans(), upper_side=st.booleans())
+@given(
+    name=st.sampled_from(sorted(CONFIGS)),
+    v_frac=st.floats(0.0, 1.0),
+    rel=st.one_of(st.just(0.0), st.floats(-15.0, -3.0).map(lambda x: 10.0**x)),
+    kink=st.booleans(),
+    upper_side=st.booleans(),
+)
 @_with_examples
 def test_states_on_each_models_own_curve_are_safe_and_tight(name, v_frac, rel, kink, upper_side):
     """On (``rel = 0``, the ``@example``s) and just inside the viability curve of the model the bounds are for:
@@ -199,7 +218,7 @@ def test_states_on_each_models_own_curve_are_safe_and_tight(name, v_frac, rel, k
         qk, vk = (float(x) for x in simulate(qk, vk, a, T, integrator, n)[:2])
     # 1e-6 a_max, or more where the overshoot it causes (>= v^2 eps / (2 a_max^2) when the stop comes inside
     # the step) would be below the float64 resolution of the position
-    eps = max(1e-6 * lim.a_max, 1e-11 * lim.a_max ** 2 / max(v * v, 1e-300))
+    eps = max(1e-6 * lim.a_max, 1e-11 * lim.a_max**2 / max(v * v, 1e-300))
     lower, upper, _ = bounds64(name, q, v, rounding_guard=False)
     if upper < lim.a_max - eps and eps <= 1e-2 * lim.a_max:
         assert violates_under_full_braking(q, v, upper + eps, name), (name, q, v, upper)
@@ -244,8 +263,11 @@ def rollout(name, policy, dtype, method="viability", steps=1500, count=32, bound
     switch = rng.integers(1, 20, size=count)
     limits = jl_limits(lim)
     with jax.enable_x64(dtype == np.float64):
-        fn = jax.jit(lambda q, v: jl.acc_bounds(q, v, limits, T, method=method, integrator=b_integrator,
-                                                substeps=b_sub, rounding_guard=rounding_guard))
+        fn = jax.jit(
+            lambda q, v: jl.acc_bounds(
+                q, v, limits, T, method=method, integrator=b_integrator, substeps=b_sub, rounding_guard=rounding_guard
+            )
+        )
         worst = dict(position=0.0, velocity=0.0, acceleration=0.0, nonviable_steps=0)
         for k in range(steps):
             b = fn(q, v)

@@ -7,8 +7,12 @@ import sys
 
 def test_demo_cli_reproduces_fig4(tmp_path):
     out = tmp_path / "joint_space"
-    proc = subprocess.run([sys.executable, "-m", "jaxlimits.training.cli", "joint-space", "--out", str(out)],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxlimits.training.cli", "joint-space", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "max pos viol [rad]" in proc.stdout
     png = (out / "joint_space.png").read_bytes()

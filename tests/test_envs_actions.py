@@ -53,7 +53,9 @@ def test_velocity_to_acc_and_mode_errors():
         with_action_mode(None, "torque")
     from jaxlimits.envs.task_space import TaskSpaceActions
 
-    assert isinstance(with_action_mode(SafetyWrapper(make_planar_reach(torque_samples=0)), "task_space"), TaskSpaceActions)
+    assert isinstance(
+        with_action_mode(SafetyWrapper(make_planar_reach(torque_samples=0)), "task_space"), TaskSpaceActions
+    )
 
 
 def test_ik_observation_is_the_damped_least_squares_step(env):
@@ -64,12 +66,17 @@ def test_ik_observation_is_the_damped_least_squares_step(env):
     q = np.asarray(s.pipeline_state.qpos, np.float64)
     obs = np.asarray(s.obs)
     assert obs.shape == (env.observation_size,) == (4 * env.n + 6,)
-    err = obs[3 * env.n + 3: 3 * env.n + 6]
+    err = obs[3 * env.n + 3 : 3 * env.n + 6]
     eps = 1e-3
-    J = np.stack([(np.asarray(env.ee_position(q + eps * e)) - np.asarray(env.ee_position(q - eps * e))) / (2 * eps)
-                  for e in np.eye(env.n)], axis=1)
+    J = np.stack(
+        [
+            (np.asarray(env.ee_position(q + eps * e)) - np.asarray(env.ee_position(q - eps * e))) / (2 * eps)
+            for e in np.eye(env.n)
+        ],
+        axis=1,
+    )
     expected = J.T @ np.linalg.solve(J @ J.T + IK_DAMPING**2 * np.eye(3), err)
-    np.testing.assert_allclose(obs[4 * env.n + 6 - env.n:], expected, atol=2e-3 * max(1.0, np.abs(expected).max()))
+    np.testing.assert_allclose(obs[4 * env.n + 6 - env.n :], expected, atol=2e-3 * max(1.0, np.abs(expected).max()))
 
 
 def test_gradient_through_the_shield_is_the_projection_derivative(env):
@@ -80,12 +87,17 @@ def test_gradient_through_the_shield_is_the_projection_derivative(env):
     q = 0.5 * (env.limits.q_max + env.limits.q_min)
     q[0] = env.limits.q_max[0] - 0.18  # joint 0 fast toward its limit (stopping distance 0.162 rad): it must brake
     v = np.array([env.limits.v_max[0] * 0.9, 0.0, 0.0])
-    s = s.replace(pipeline_state=s.pipeline_state.replace(qpos=jnp.asarray(q, jnp.float32), qvel=jnp.asarray(v, jnp.float32)))
+    s = s.replace(
+        pipeline_state=s.pipeline_state.replace(qpos=jnp.asarray(q, jnp.float32), qvel=jnp.asarray(v, jnp.float32))
+    )
     b = w.bounds(s)
     action = jnp.asarray([1.0, 0.3, -0.2], jnp.float32)  # joint 0 above its (braking) upper bound, others inside
     a_max = np.asarray(env.limits.a_max)
     assert float(action[0] * a_max[0]) > float(b.upper[0])
-    assert np.all((np.asarray(action[1:]) * a_max[1:] > np.asarray(b.lower[1:])) & (np.asarray(action[1:]) * a_max[1:] < np.asarray(b.upper[1:])))
+    assert np.all(
+        (np.asarray(action[1:]) * a_max[1:] > np.asarray(b.lower[1:]))
+        & (np.asarray(action[1:]) * a_max[1:] < np.asarray(b.upper[1:]))
+    )
 
     def reward(a):
         return w.step(s, a).reward
@@ -111,7 +123,9 @@ def test_straight_through_shield_gradient_is_opt_in_and_keeps_the_value(env):
     q = 0.5 * (env.limits.q_max + env.limits.q_min)
     q[0] = env.limits.q_max[0] - 0.18
     v = np.array([env.limits.v_max[0] * 0.9, 0.0, 0.0])
-    s = s.replace(pipeline_state=s.pipeline_state.replace(qpos=jnp.asarray(q, jnp.float32), qvel=jnp.asarray(v, jnp.float32)))
+    s = s.replace(
+        pipeline_state=s.pipeline_state.replace(qpos=jnp.asarray(q, jnp.float32), qvel=jnp.asarray(v, jnp.float32))
+    )
     a_des = jnp.asarray([1.0, 0.3, -0.2], jnp.float32) * jnp.asarray(env.limits.a_max, jnp.float32)
     b = exact.bounds(s)
     assert float(a_des[0]) > float(b.upper[0])  # joint 0 is clipped, the others are free

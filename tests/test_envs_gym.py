@@ -140,8 +140,14 @@ def test_make_vec(venv):
 
 def test_velocity_actions_and_ik_observation_through_gymnasium():
     """The Brax configs' task options reach the Gymnasium front: spaces follow them, steps obey them."""
-    env = gymnasium.make("jaxlimits/PlanarReach-v0", shield="viability", action_mode="velocity", ik_observation=True,
-                         precision_reward=1.0, max_episode_steps=20)
+    env = gymnasium.make(
+        "jaxlimits/PlanarReach-v0",
+        shield="viability",
+        action_mode="velocity",
+        ik_observation=True,
+        precision_reward=1.0,
+        max_episode_steps=20,
+    )
     n = 3
     assert env.observation_space.shape == (4 * n + 6,) and env.action_space.shape == (n,)
     obs, info = env.reset(seed=0)

@@ -65,8 +65,14 @@ def test_wrapper_metrics_and_full_push(rollout, env):
 def test_bounds_use_the_env_discretisation(rollout, env):
     w, (s, _) = rollout  # batched final states of the rollout
     b = w.bounds(s)
-    ref = jl.acc_bounds(s.pipeline_state.qpos, s.pipeline_state.qvel, env.limits, env.dt,
-                        integrator="semi_implicit", substeps=env.frame_skip)
+    ref = jl.acc_bounds(
+        s.pipeline_state.qpos,
+        s.pipeline_state.qvel,
+        env.limits,
+        env.dt,
+        integrator="semi_implicit",
+        substeps=env.frame_skip,
+    )
     np.testing.assert_array_equal(b.lower, ref.lower)
     np.testing.assert_array_equal(b.upper, ref.upper)
 
@@ -124,9 +130,9 @@ def test_brax_training_wrap_accumulates_episode_metrics(brax_run):
     for key in ("intervention", "count/position", "violation/velocity", "torque_box_conflict", "viable", "distance"):
         assert key in ep[0]
     # episode sums of the per-step metrics, restarted after each episode end
-    total = sum(np.asarray(s.metrics["intervention"]) for s in states[1:EPISODE + 1])
+    total = sum(np.asarray(s.metrics["intervention"]) for s in states[1 : EPISODE + 1])
     np.testing.assert_allclose(ep[EPISODE]["intervention"], total, rtol=1e-5)
-    dist = sum(np.asarray(s.metrics["distance"]) for s in states[1:EPISODE + 1])
+    dist = sum(np.asarray(s.metrics["distance"]) for s in states[1 : EPISODE + 1])
     np.testing.assert_allclose(ep[EPISODE]["distance"], dist, rtol=1e-5)
     assert np.all(dist > 0)
     np.testing.assert_array_equal(ep[EPISODE]["length"], EPISODE)
@@ -164,8 +170,9 @@ def test_torque_box_on_the_planar_arm_never_binds(brax_run, env):
 def test_non_finite_actions_never_reach_the_simulator(env, method):
     """NaN/inf commands are replaced, whole, by braking (projected into the bounds) and counted."""
     w = SafetyWrapper(env, method)
-    bad_actions = jnp.array([[jnp.nan, 0.0, 0.0], [0.5, jnp.inf, -0.5], [-jnp.inf, jnp.nan, 1.0], [0.1, 0.2, 0.3]],
-                            jnp.float32)[:, : env.n]
+    bad_actions = jnp.array(
+        [[jnp.nan, 0.0, 0.0], [0.5, jnp.inf, -0.5], [-jnp.inf, jnp.nan, 1.0], [0.1, 0.2, 0.3]], jnp.float32
+    )[:, : env.n]
 
     @jax.jit
     def run(key):
@@ -174,8 +181,14 @@ def test_non_finite_actions_never_reach_the_simulator(env, method):
 
         def body(s, a):
             s = w.step(s, a)
-            return s, (s.metrics["nonfinite_action"], s.metrics["intervention"], s.pipeline_state.qpos,
-                       s.pipeline_state.qvel, s.info["a_safe"], s.metrics["count/position"])
+            return s, (
+                s.metrics["nonfinite_action"],
+                s.metrics["intervention"],
+                s.pipeline_state.qpos,
+                s.pipeline_state.qvel,
+                s.info["a_safe"],
+                s.metrics["count/position"],
+            )
 
         return jax.lax.scan(body, s, jnp.tile(bad_actions, (20, 1)))
 

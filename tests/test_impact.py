@@ -67,11 +67,17 @@ def test_jump_matches_dense(dtype):
         ref = dense_jump(M[i], J[i], nrm[i], v[i], C, DTI)
         for k in ("w", "dq", "dtau", "force"):
             r = np.asarray(ref[k])
-            np.testing.assert_allclose(np.asarray(getattr(out, k)[i], np.float64), r, rtol=rtol, atol=rtol * np.max(np.abs(r)))
-        np.testing.assert_allclose(np.asarray(Meq[i], np.float64), ref["Meq"], rtol=rtol, atol=rtol * np.abs(ref["Meq"]).max())
+            np.testing.assert_allclose(
+                np.asarray(getattr(out, k)[i], np.float64), r, rtol=rtol, atol=rtol * np.max(np.abs(r))
+            )
+        np.testing.assert_allclose(
+            np.asarray(Meq[i], np.float64), ref["Meq"], rtol=rtol, atol=rtol * np.abs(ref["Meq"]).max()
+        )
     # the default regularisation changes a well-conditioned answer by ~reg only
     out_reg = _jump(*(jnp.asarray(x, dtype) for x in (M, J, nrm, v)), ji.DEFAULT_REG)
-    np.testing.assert_allclose(np.asarray(out_reg.dq), np.asarray(out.dq), rtol=1e-3, atol=1e-3 * float(jnp.max(jnp.abs(out.dq))))
+    np.testing.assert_allclose(
+        np.asarray(out_reg.dq), np.asarray(out.dq), rtol=1e-3, atol=1e-3 * float(jnp.max(jnp.abs(out.dq)))
+    )
 
 
 def test_jump_identities(x64):
@@ -99,12 +105,19 @@ def test_constraint_rows_vs_dense(x64):
             v_pre = v + DT * a
             ref = dense_jump(M, J, nrm, v_pre, C, DTI)
             dq, dtau = ref["dq"], ref["dtau"]
-            slack_ref = np.concatenate([
-                dq - (LIM.q_max - q) / DT, (LIM.q_min - q) / DT - dq,
-                v_pre + dq - LIM.v_max, -LIM.v_max - v_pre - dq,
-                dtau - TAU, -TAU - dtau,
-            ])
-            np.testing.assert_allclose(np.asarray(G) @ a - np.asarray(h), slack_ref, rtol=1e-8, atol=1e-8 * np.abs(slack_ref).max())
+            slack_ref = np.concatenate(
+                [
+                    dq - (LIM.q_max - q) / DT,
+                    (LIM.q_min - q) / DT - dq,
+                    v_pre + dq - LIM.v_max,
+                    -LIM.v_max - v_pre - dq,
+                    dtau - TAU,
+                    -TAU - dtau,
+                ]
+            )
+            np.testing.assert_allclose(
+                np.asarray(G) @ a - np.asarray(h), slack_ref, rtol=1e-8, atol=1e-8 * np.abs(slack_ref).max()
+            )
 
 
 @pytest.mark.parametrize("seed", range(8))
@@ -244,4 +257,6 @@ def test_eager_errors():
         ji.check_restitution(0.5, 0.2)
     assert ji.check_restitution(0.0, 0.8) == 0.8
     J6 = np.concatenate([J, np.ones((3, N))])  # (6, n): the linear rows are used
-    np.testing.assert_allclose(np.asarray(_jump(M, J6, nrm, v, 1e-6).dq), np.asarray(_jump(M, J, nrm, v, 1e-6).dq), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(_jump(M, J6, nrm, v, 1e-6).dq), np.asarray(_jump(M, J, nrm, v, 1e-6).dq), rtol=1e-6
+    )

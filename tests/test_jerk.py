@@ -20,7 +20,13 @@ sys.path.insert(0, os.path.dirname(__file__))
 
 import jaxlimits as jl  # noqa: E402
 from jerk_reference import (  # noqa: E402
-    JLimits1, braking_peak_dense, lp_jerk_bounds, position_threshold_dense, sample_states, simulate_step)
+    JLimits1,
+    braking_peak_dense,
+    lp_jerk_bounds,
+    position_threshold_dense,
+    sample_states,
+    simulate_step,
+)
 
 CONFIGS = {
     "zoh-j200": (JLimits1(-2.0, 2.0, 2.0, 12.0, 200.0), 0.01, "zoh", 1),
@@ -45,8 +51,17 @@ def bounds64(name, q, v, a, method="jerk", rounding_guard=False, widen=0.0):
     pad = (-count) % BATCH
     q, v, a = (np.concatenate([np.asarray(x, np.float64), np.zeros(pad)]) for x in (q, v, a))
     with jax.enable_x64(True):
-        b = jl.acc_bounds(q.reshape(-1, BATCH), v.reshape(-1, BATCH), jl_limits(lim), T, method=method,
-                          integrator=integrator, substeps=n, rounding_guard=rounding_guard, a_prev=a.reshape(-1, BATCH))
+        b = jl.acc_bounds(
+            q.reshape(-1, BATCH),
+            v.reshape(-1, BATCH),
+            jl_limits(lim),
+            T,
+            method=method,
+            integrator=integrator,
+            substeps=n,
+            rounding_guard=rounding_guard,
+            a_prev=a.reshape(-1, BATCH),
+        )
         return tuple(np.asarray(x).reshape(-1)[:count] for x in b)
 
 
@@ -67,8 +82,18 @@ def lp_comparison(name, count, method="jerk", seed=0):
     # LP-feasible and truly not viable (checked by hand: the continuous-time peak of the hardest
     # braking crosses the limit between two samples); counted apart, not as a mismatch
     viable_widened = bounds64(name, q, v, a, method, widen=lim.a_max * (T / 8) ** 2 / 8)[2]
-    out = dict(states=count, lp_viable=0, viability_mismatch=0, lp_resolution=0, unsafe=0, max_excess=0.0, gaps=[],
-               active=0, brackets=[], outer_gaps=[])
+    out = dict(
+        states=count,
+        lp_viable=0,
+        viability_mismatch=0,
+        lp_resolution=0,
+        unsafe=0,
+        max_excess=0.0,
+        gaps=[],
+        active=0,
+        brackets=[],
+        outer_gaps=[],
+    )
     for k in range(count):
         r = _lp(name, float(q[k]), float(v[k]), float(a[k]))
         if r is None:
@@ -164,7 +189,9 @@ def test_position_threshold_matches_dense_bisection(name):
     def upper_side(d, v, a):  # the side's bound: its terms' minimum clipped into the jerk box (limit.combine)
         t = jerk.upper_terms(model, d, v, a, lim.v_max, lim.a_max, lim.j_max * T)
         lo = jnp.maximum(jnp.clip(a, -lim.a_max, lim.a_max) - lim.j_max * T, -lim.a_max)
-        return jnp.clip(jnp.minimum(jnp.minimum(t["acceleration"], t["velocity"]), t["position"]), lo, t["acceleration"])
+        return jnp.clip(
+            jnp.minimum(jnp.minimum(t["acceleration"], t["velocity"]), t["position"]), lo, t["acceleration"]
+        )
 
     side = jax.jit(upper_side)
     assert np.mean(ref < hi) > 0.5 and np.mean((ref > lo) & (ref < hi)) > 0.4  # mostly inside the box
@@ -197,8 +224,9 @@ def rollout(name, policy, dtype, method="jerk", steps=300, count=BATCH):
     worst = dict(position=0.0, velocity=0.0, acceleration=0.0, jerk=0.0, nonviable_steps=0)
     with jax.enable_x64(dtype == np.float64):
         # eager call: the jerk method compiles its core once per configuration and dtype (cached)
-        fn = lambda q, v, a: jl.acc_bounds(q, v, limits, T, method=method, integrator=integrator, substeps=n,  # noqa: E731
-                                           a_prev=a)
+        def fn(q, v, a):
+            return jl.acc_bounds(q, v, limits, T, method=method, integrator=integrator, substeps=n, a_prev=a)
+
         for k in range(steps):
             b = fn(q, v, a_prev)
             lower, upper = np.asarray(b.lower), np.asarray(b.upper)
@@ -274,6 +302,7 @@ def test_finite_values_and_gradients_everywhere(x64):
         b = jl.acc_bounds(qs, vs, lim, 0.01, method=method, a_prev=as_)
         assert np.all(np.isfinite(np.asarray(b.lower))) and np.all(np.isfinite(np.asarray(b.upper)))
     for method in ("jerk",):
+
         def total(q, v, a):
             b = jl.acc_bounds(q, v, lim, 0.01, method=method, a_prev=a)
             return jnp.sum(b.lower + b.upper)

@@ -31,7 +31,13 @@ sys.path.insert(0, os.path.dirname(__file__))
 import jaxlimits as jl  # noqa: E402
 from jaxlimits._src import jerk, jerk_condition  # noqa: E402
 from jerk_reference import (  # noqa: E402
-    JLimits1, braking_peak_dense, lp_jerk_bounds_exact_first, lp_jerk_feasible, sample_states, simulate_step)
+    JLimits1,
+    braking_peak_dense,
+    lp_jerk_bounds_exact_first,
+    lp_jerk_feasible,
+    sample_states,
+    simulate_step,
+)
 
 CHECK = jerk_condition.check_jerk_condition  # the new condition, kept before any monkeypatch
 EXAMPLE = JLimits1(-0.5, 0.5, 2.0, 10.0, 60.0)
@@ -68,8 +74,17 @@ def bounds64(lim, T, integrator, n, q, v, a_prev, condition):
     """``acc_bounds(method="jerk")`` in float64 without the rounding guard, under ``condition``."""
     q, v, a_prev = (np.asarray(x, np.float64) for x in (q, v, a_prev))
     with use_condition(condition), jax.enable_x64(True):
-        b = jl.acc_bounds(q, v, jl_limits(lim), T, method="jerk", integrator=integrator, substeps=n,
-                          rounding_guard=False, a_prev=a_prev)
+        b = jl.acc_bounds(
+            q,
+            v,
+            jl_limits(lim),
+            T,
+            method="jerk",
+            integrator=integrator,
+            substeps=n,
+            rounding_guard=False,
+            a_prev=a_prev,
+        )
         return tuple(np.asarray(x) for x in b)
 
 
@@ -108,8 +123,9 @@ def tight_states(lim, T, integrator, n, count, rng):
     d = np.maximum(peak, 0.0) * (1 + rng.choice([1e-7, 1e-3, 0.1, 1.0], count)) + 1e-12
     d = np.minimum(d, lim.q_max - lim.q_min)
     up = rng.uniform(size=count) < 0.5
-    return [(lim.q_max - d[k], v[k], a_prev[k]) if up[k] else (lim.q_min + d[k], -v[k], -a_prev[k])
-            for k in range(count)]
+    return [
+        (lim.q_max - d[k], v[k], a_prev[k]) if up[k] else (lim.q_min + d[k], -v[k], -a_prev[k]) for k in range(count)
+    ]
 
 
 def lp_agreement(lim, T, integrator, n, states):
@@ -122,8 +138,7 @@ def lp_agreement(lim, T, integrator, n, states):
     viable_wide = bounds64(wide, T, integrator, n, q, v, a, no_condition)[2]
     out = dict(states=len(states), lp_viable=0, mismatch=0, lp_resolution=0, excess=0.0, gap=0.0, bracket=0.0)
     for k in range(len(states)):
-        r = lp_jerk_bounds_exact_first(float(q[k]), float(v[k]), float(a[k]), lim, T, integrator, n,
-                                       samples=samples)
+        r = lp_jerk_bounds_exact_first(float(q[k]), float(v[k]), float(a[k]), lim, T, integrator, n, samples=samples)
         if r is None:
             out["mismatch"] += int(bool(viable[k]))
             continue
@@ -259,9 +274,13 @@ def conflict_state(lim, T, integrator, n, kind, slack=1e-5):
     return q, v, -a_w, a0_max
 
 
-B_CASES = [(kind, integrator, n, rel, 2.0) for kind in ("position", "velocity")
-           for integrator, n in (("zoh", 1), ("semi_implicit", 4), ("semi_implicit", 1)) for rel in (1e-3, 1e-4)
-           if not (kind == "velocity" and n == 1 and integrator == "semi_implicit")]  # it needs no v_max (speed 0)
+B_CASES = [
+    (kind, integrator, n, rel, 2.0)
+    for kind in ("position", "velocity")
+    for integrator, n in (("zoh", 1), ("semi_implicit", 4), ("semi_implicit", 1))
+    for rel in (1e-3, 1e-4)
+    if not (kind == "velocity" and n == 1 and integrator == "semi_implicit")
+]  # it needs no v_max (speed 0)
 B_CASES += [("position", "semi_implicit", 1, 1e-3, 0.8)]  # v_max < h a_max: the travel of a_w = v_max / h
 
 

@@ -20,8 +20,13 @@ import pytest
 
 import jaxlimits as jl
 
-LIM = jl.JointLimits(q_min=[-1.0, -0.5, -2.0], q_max=[1.0, 0.5, 1.5], v_max=[2.0, 1.5, 2.5],
-                     a_max=[10.0, 8.0, 12.0], j_max=[600.0, 500.0, 800.0])
+LIM = jl.JointLimits(
+    q_min=[-1.0, -0.5, -2.0],
+    q_max=[1.0, 0.5, 1.5],
+    v_max=[2.0, 1.5, 2.5],
+    a_max=[10.0, 8.0, 12.0],
+    j_max=[600.0, 500.0, 800.0],
+)
 DT = 0.01
 MODELS = [("zoh", 1), ("semi_implicit", 1), ("semi_implicit", 5)]
 CASES = [(m, i, n) for m in sorted(jl.METHODS) for i, n in MODELS]
@@ -56,13 +61,22 @@ def states(integrator, substeps, dtype):
     v = [v_max * rng.uniform(-1, 1, (24, 3))]
     d = 0.2 * span
     vc = curve_speed(d, integrator, substeps)
-    rows = [(q_max, 0 * q_max), (q_min, 0 * q_min), (q_max - d, vc), (q_min + d, -vc), (q_max, v_max),
-            (q_min, -v_max), (q_max + 0.01, 0.5 * v_max), (q_min - 0.01, -v_max), (0 * q_max, 1.5 * v_max)]
+    rows = [
+        (q_max, 0 * q_max),
+        (q_min, 0 * q_min),
+        (q_max - d, vc),
+        (q_min + d, -vc),
+        (q_max, v_max),
+        (q_min, -v_max),
+        (q_max + 0.01, 0.5 * v_max),
+        (q_min - 0.01, -v_max),
+        (0 * q_max, 1.5 * v_max),
+    ]
     q.append(np.stack([r[0] for r in rows]))
     v.append(np.stack([r[1] for r in rows]))
     q, v = np.concatenate(q), np.concatenate(v)
     a_prev = a_max * rng.uniform(-1, 1, q.shape)
-    a_prev[-len(rows):] = 0.0
+    a_prev[-len(rows) :] = 0.0
     return q.astype(dtype), v.astype(dtype), a_prev.astype(dtype)
 
 
@@ -152,7 +166,7 @@ def test_refused_by_both_or_accepted_by_both(method, integrator, substeps):
 def _ride_upper_bound(method, integrator, substeps, steps=120):
     """float32: start near the upper limit moving toward it, command the upper bound every step."""
     rng = np.random.default_rng(3)
-    q_max, v_max = np.asarray(LIM.q_max), np.asarray(LIM.v_max)
+    q_max = np.asarray(LIM.q_max)
     d = np.geomspace(1e-6, 0.3, 64)[:, None] * (q_max - np.asarray(LIM.q_min))
     vc = np.stack([curve_speed(row, integrator, substeps) for row in d])
     q = (q_max - d).astype(np.float32)

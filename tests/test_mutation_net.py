@@ -68,7 +68,7 @@ def guard_states(lim, dt, dtype):
     d_rest = a_max * dt * dt * u
     v_fast = v_max - a_max * dt * (0.1 + 0.8 * u)
     v_curve = v_max * (0.2 + 2.0 * u)
-    d_curve = v_curve ** 2 / (2 * a_max) * 1.3 + a_max * dt * dt
+    d_curve = v_curve**2 / (2 * a_max) * 1.3 + a_max * dt * dt
     mid = 0.5 * (q_min + q_max)
     q = np.concatenate([q_max - d_rest, q_min + d_rest, mid + 0 * u, mid + 0 * u, q_max - d_curve, q_min + d_curve])
     v = np.concatenate([0 * u, 0 * u, v_fast, -v_fast, v_curve, -v_curve])
@@ -89,8 +89,14 @@ def test_rounding_guard_is_the_documented_narrowing(cfg, dtype):
     err = {}
     with jax.enable_x64(True):
         for r in (R - 1, R, R + 1):
-            ref = jl.acc_bounds(q.astype(np.float64), v.astype(np.float64), narrowed_limits(lim, dtype, r), dt,
-                                rounding_guard=False, **kw)
+            ref = jl.acc_bounds(
+                q.astype(np.float64),
+                v.astype(np.float64),
+                narrowed_limits(lim, dtype, r),
+                dt,
+                rounding_guard=False,
+                **kw,
+            )
             err[r] = float(np.max(np.abs(got - np.stack([np.asarray(ref.lower), np.asarray(ref.upper)]))))
     a_max = lim[3]
     # float32: the formulas' own rounding (~1e-6 a_max on the braking curve); one rounding more or less moves
@@ -120,8 +126,10 @@ def test_float64_rounding_guard_moves_the_bounds_by_ulps(cfg, x64):
     bare = jl.acc_bounds(q, v, lim_, dt, rounding_guard=False, **kw)
     viable = np.asarray(bare.viable)
     assert viable.sum() > m
-    diff = np.maximum(np.abs(np.asarray(guarded.lower) - np.asarray(bare.lower)),
-                      np.abs(np.asarray(guarded.upper) - np.asarray(bare.upper)))[viable]
+    diff = np.maximum(
+        np.abs(np.asarray(guarded.lower) - np.asarray(bare.lower)),
+        np.abs(np.asarray(guarded.upper) - np.asarray(bare.upper)),
+    )[viable]
     assert np.max(diff) <= 1e-8 * a_max, np.max(diff)
     assert np.percentile(diff, 90) <= 1e-11 * a_max, np.percentile(diff, 90)
     assert np.count_nonzero(diff > 0) > 0  # the guard does act
@@ -146,8 +154,16 @@ def model_braking_distance(v, a_max, integrator, h):
 def limit_states(integrator, n):
     """(q, v, a_prev) exactly on the limits the formulas use, and just outward of them."""
     q_min, q_max, v_max, a_max, _ = GRAD_LIM
-    rows = [(q_max, 0.0), (q_min, 0.0), (q_max, -v_max), (q_min, v_max), (0.0, v_max), (0.0, -v_max),
-            (0.5, v_max), (-0.5, -v_max)]
+    rows = [
+        (q_max, 0.0),
+        (q_min, 0.0),
+        (q_max, -v_max),
+        (q_min, v_max),
+        (0.0, v_max),
+        (0.0, -v_max),
+        (0.5, v_max),
+        (-0.5, -v_max),
+    ]
     for v in (1e-6, 0.5, v_max, 1.5 * v_max, 3 * v_max):  # on a limit, moving out (at and past v_max)
         rows += [(q_max, v), (q_min, -v)]
     for dq, v in ((1e-7, 0.0), (1e-3, 0.5), (0.5, v_max), (1e-3, -0.5)):  # past a limit
@@ -172,14 +188,18 @@ def test_gradients_finite_on_exact_limits_without_rounding_guard(method, integra
     extra = dict(a_prev=a_prev) if method == "jerk" else {}
 
     def both(q, v):
-        b = jl.acc_bounds(q, v, lim, GRAD_DT, method=method, integrator=integrator, substeps=substeps,
-                          rounding_guard=False, **extra)
+        b = jl.acc_bounds(
+            q, v, lim, GRAD_DT, method=method, integrator=integrator, substeps=substeps, rounding_guard=False, **extra
+        )
         return b.lower + b.upper
 
     @jax.jit
     def derivatives(q, v):  # one compilation for both modes
-        return both(q, v), jax.grad(lambda q, v: jnp.sum(both(q, v)), argnums=(0, 1))(q, v), \
-            jax.jacfwd(both, argnums=(0, 1))(q, v)
+        return (
+            both(q, v),
+            jax.grad(lambda q, v: jnp.sum(both(q, v)), argnums=(0, 1))(q, v),
+            jax.jacfwd(both, argnums=(0, 1))(q, v),
+        )
 
     value, grads, jac = derivatives(q, v)
     assert np.all(np.isfinite(np.asarray(value)))
@@ -262,8 +282,9 @@ def test_conflict_collapses_to_the_braking_action_of_the_side_moved_toward(cfg, 
     conflict = ref_lower > ref_upper + tol
     toward_upper = (v > 0) | ((v == 0) & (2 * q >= q_min + q_max))
     for method in ("viability", "naive"):
-        b = jl.acc_bounds(q, v, jl.JointLimits(*lim), dt, method=method, integrator=integrator, substeps=n,
-                          rounding_guard=False)
+        b = jl.acc_bounds(
+            q, v, jl.JointLimits(*lim), dt, method=method, integrator=integrator, substeps=n, rounding_guard=False
+        )
         lower, upper = np.asarray(b.lower), np.asarray(b.upper)
         assert np.all(lower <= upper)
         assert not np.any(np.asarray(b.viable)[conflict])
@@ -300,8 +321,17 @@ def test_jerk_conflict_collapses_to_the_braking_action_of_the_side_moved_toward(
     ref_lower = -position_threshold_dense(q - lim.q_min, -v, -a_prev, lim, dt, integrator, n)[0]
     conflict = ref_lower > ref_upper + 1e-6 * lim.a_max
     assert np.count_nonzero(conflict & (v > 0)) > 20 and np.count_nonzero(conflict & (v < 0)) > 20
-    b = jl.acc_bounds(q, v, jl.JointLimits(lim.q_min, lim.q_max, lim.v_max, lim.a_max, j_max=lim.j_max), dt,
-                      method="jerk", integrator=integrator, substeps=n, rounding_guard=False, a_prev=a_prev)
+    b = jl.acc_bounds(
+        q,
+        v,
+        jl.JointLimits(lim.q_min, lim.q_max, lim.v_max, lim.a_max, j_max=lim.j_max),
+        dt,
+        method="jerk",
+        integrator=integrator,
+        substeps=n,
+        rounding_guard=False,
+        a_prev=a_prev,
+    )
     lower, upper = np.asarray(b.lower), np.asarray(b.upper)
     toward_upper = (v > 0) | ((v == 0) & (2 * q >= lim.q_min + lim.q_max))
     brake = np.where(toward_upper, ref_upper, ref_lower)
@@ -341,8 +371,11 @@ def test_every_family_resolves_conflicts_by_the_documented_rule(method, x64):
         assert np.count_nonzero(conflict & (v == 0) & ~toward_upper) > 20
 
 
-@pytest.mark.parametrize("cfg", JERK_CONFIGS + [(JLimits1(-2.0, 2.0, 2.0, 12.0, 200.0), 0.01, "semi_implicit", 5)],
-                         ids=["zoh-j200", "semi4-j500", "semi5-j200"])
+@pytest.mark.parametrize(
+    "cfg",
+    JERK_CONFIGS + [(JLimits1(-2.0, 2.0, 2.0, 12.0, 200.0), 0.01, "semi_implicit", 5)],
+    ids=["zoh-j200", "semi4-j500", "semi5-j200"],
+)
 def test_jerk_viability_is_the_dense_max_braking_test(cfg, x64):
     """``is_viable_jerk`` against a step-by-step simulation of the hardest braking the jerk allows
     (``jerk_reference.braking_peak_dense``: every instant for zoh, every substep for semi-implicit) on states

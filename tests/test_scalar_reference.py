@@ -59,6 +59,8 @@ CONFIGS_12 = CONFIGS + [((-0.05, 0.05, 1.0, 10.0), 0.1, "zoh", 1)]
 def _id(cfg):
     lim, dt, integ, sub = cfg
     return f"{integ}{sub}-span{lim[1] - lim[0]:g}-amax{lim[3]:g}-dt{dt:g}"
+
+
 N_DRAW = 4000  # states drawn per configuration (before the viability filter)
 N_EXACT = 150  # states per configuration checked against the exact definition (12)
 TOL = 1e-9  # relative to a_max
@@ -181,8 +183,10 @@ def exact_viable(q, v, lim, integrator, h):
     q, v = Fraction(q), Fraction(v)
     if not (q_min <= q <= q_max and abs(v) <= v_max):
         return False
-    return (_exact_braking_distance(v, a_max, integrator, h) <= q_max - q
-            and _exact_braking_distance(-v, a_max, integrator, h) <= q - q_min)
+    return (
+        _exact_braking_distance(v, a_max, integrator, h) <= q_max - q
+        and _exact_braking_distance(-v, a_max, integrator, h) <= q - q_min
+    )
 
 
 # ---------------------------------------------------------------- tests
@@ -197,12 +201,17 @@ def test_library_equals_scalar_reference(lim, dt, integrator, substeps):
         q, v = q_all[viable], v_all[viable]
         limits = jl.JointLimits(*lim)
         for method in ("viability", "naive"):
-            b = jl.acc_bounds(q_all, v_all, limits, dt, method=method, integrator=integrator, substeps=substeps,
-                              rounding_guard=False)
+            b = jl.acc_bounds(
+                q_all, v_all, limits, dt, method=method, integrator=integrator, substeps=substeps, rounding_guard=False
+            )
             lower, upper = np.asarray(b.lower)[viable], np.asarray(b.upper)[viable]
             assert lower.dtype == np.float64
-            ref = np.array([scalar_bounds(qi, vi, *lim, dt, method=method, integrator=integrator, substeps=substeps)
-                            for qi, vi in zip(q.tolist(), v.tolist())])
+            ref = np.array(
+                [
+                    scalar_bounds(qi, vi, *lim, dt, method=method, integrator=integrator, substeps=substeps)
+                    for qi, vi in zip(q.tolist(), v.tolist())
+                ]
+            )
             err = np.maximum(np.abs(ref[:, 0] - lower), np.abs(ref[:, 1] - upper)) / lim[3]
             worst = int(np.argmax(np.where(np.isnan(err), np.inf, err)))
             assert np.all(err <= TOL), (
@@ -223,7 +232,7 @@ def test_scalar_reference_equals_definition_12(lim, dt, integrator, substeps):
     h = Fraction(dt) / substeps
     with jax.enable_x64(True):
         q, v, viable, near = draw_states(rng, lim, dt, integrator, substeps, N_DRAW)
-    idx = np.concatenate([np.flatnonzero(viable & near)[:100], np.flatnonzero(viable & ~near)[:N_EXACT - 100]])
+    idx = np.concatenate([np.flatnonzero(viable & near)[:100], np.flatnonzero(viable & ~near)[: N_EXACT - 100]])
     checked = 0
     for i in idx:
         qi, vi = float(q[i]), float(v[i])

@@ -36,8 +36,15 @@ def padded_bounds(q, v, lim, dt, substeps):
     count = len(q)
     assert count <= BATCH
     pad = np.full(BATCH - count, 0.5 * (lim[0] + lim[1]))
-    b = jl.acc_bounds(np.concatenate([q, pad]), np.concatenate([v, 0 * pad]), jl.JointLimits(*lim), dt,
-                      integrator="semi_implicit", substeps=substeps, rounding_guard=False)
+    b = jl.acc_bounds(
+        np.concatenate([q, pad]),
+        np.concatenate([v, 0 * pad]),
+        jl.JointLimits(*lim),
+        dt,
+        integrator="semi_implicit",
+        substeps=substeps,
+        rounding_guard=False,
+    )
     return tuple(np.asarray(x)[:count] for x in b)
 
 
@@ -45,15 +52,24 @@ def boundary_states(lim, dt, n):
     """States exactly on the edges of the viable set and of the formulas' branches, both sides."""
     q_min, q_max, v_max, a_max = lim
     h = dt / n
-    v = np.concatenate([
-        v_max * np.linspace(0.0, 1.0, 21),
-        h * a_max * np.arange(1, int(v_max / (h * a_max)) + 1),  # the kinks of D(v): v = K h a_max
-    ])
+    v = np.concatenate(
+        [
+            v_max * np.linspace(0.0, 1.0, 21),
+            h * a_max * np.arange(1, int(v_max / (h * a_max)) + 1),  # the kinks of D(v): v = K h a_max
+        ]
+    )
     v = v[v <= v_max]
     D = sir.braking_distance(v, a_max, h)
     rows_q, rows_v = [], []
-    for d, vv in ((D, v), (D * (1 + 1e-12), v), (D + 1e-9, v), (0 * v, -v), (0.5 * h * v, v), (h * v, v),
-                  (2 * h * v, v)):
+    for d, vv in (
+        (D, v),
+        (D * (1 + 1e-12), v),
+        (D + 1e-9, v),
+        (0 * v, -v),
+        (0.5 * h * v, v),
+        (h * v, v),
+        (2 * h * v, v),
+    ):
         rows_q += [q_max - d, q_min + d]
         rows_v += [vv, -vv]
     mid = 0.5 * (q_min + q_max)
@@ -93,8 +109,12 @@ def test_semi_implicit_bounds_equal_brute_force(name, substeps, x64):
     assert np.count_nonzero(both) > 0.6 * len(q) and np.count_nonzero(both[: len(qb)]) > 0.5 * len(qb)
     err = np.maximum(np.abs(lower - ref_lower), np.abs(upper - ref_upper)) / a_max
     worst = int(np.argmax(np.where(both, err, -1.0)))
-    assert np.all(err[both] <= TOL), (q[worst], v[worst], (lower[worst], upper[worst]),
-                                     (ref_lower[worst], ref_upper[worst]))
+    assert np.all(err[both] <= TOL), (
+        q[worst],
+        v[worst],
+        (lower[worst], upper[worst]),
+        (ref_lower[worst], ref_upper[worst]),
+    )
     # and the interval is never empty there (the reference's sides are computed apart)
     assert np.all(ref_lower[both] <= ref_upper[both] + TOL * a_max)
 
@@ -103,8 +123,12 @@ def test_reference_braking_distance_and_predicate():
     """The reference itself on hand-checkable cases: D(v) by its definition, and the predicate's edges."""
     h, a_max = 0.01, 10.0
     # v = 0.35: terms 0.35 - 0.1 k for k = 1, 2, 3 -> 0.25 + 0.15 + 0.05 = 0.45, times h
-    np.testing.assert_allclose(sir.braking_distance(np.array([0.35, 0.1, 0.0, -1.0]), a_max, h),
-                               [0.0045, 0.0, 0.0, 0.0], rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(
+        sir.braking_distance(np.array([0.35, 0.1, 0.0, -1.0]), a_max, h),
+        [0.0045, 0.0, 0.0, 0.0],
+        rtol=1e-12,
+        atol=1e-18,
+    )
     # at rest exactly on q_max: a = 0 is allowed, any positive a is not; -a_max always is
     ok = sir.upper_ok(np.array([0.0, 1e-9, -a_max]), 0.0, 0.0, 1.0, a_max, 0.05, 5)
     assert ok.tolist() == [True, False, True]

@@ -4,7 +4,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.test_util import check_grads
 from scipy.optimize import minimize
 
 import jaxlimits as jl
@@ -34,17 +33,37 @@ def _slsqp(J, dr, alpha, t_lo, w, dq_min, dq_max, t_fix=None):
     z = np.zeros((n, 1))
     cons = [dict(type="eq", fun=lambda x: J @ x[:n] - dr, jac=lambda x: np.hstack([J, np.zeros((m, 1))]))]
     for s in (1.0, -1.0):
-        cons.append(dict(type="ineq", fun=lambda x, s=s: V_MAX * x[n] - s * x[:n], jac=lambda x, s=s: np.hstack([-s * E, np.full((n, 1), V_MAX)])))
-        cons.append(dict(type="ineq", fun=lambda x, s=s: B_MAX * x[n] - s * (A_ROW @ x[:n]),
-                         jac=lambda x, s=s: np.hstack([-s * A_ROW, [[B_MAX]]])))
+        cons.append(
+            dict(
+                type="ineq",
+                fun=lambda x, s=s: V_MAX * x[n] - s * x[:n],
+                jac=lambda x, s=s: np.hstack([-s * E, np.full((n, 1), V_MAX)]),
+            )
+        )
+        cons.append(
+            dict(
+                type="ineq",
+                fun=lambda x, s=s: B_MAX * x[n] - s * (A_ROW @ x[:n]),
+                jac=lambda x, s=s: np.hstack([-s * A_ROW, [[B_MAX]]]),
+            )
+        )
     cons.append(dict(type="ineq", fun=lambda x: dq_max - x[:n], jac=lambda x: np.hstack([-E, z])))
     cons.append(dict(type="ineq", fun=lambda x: x[:n] - dq_min, jac=lambda x: np.hstack([E, z])))
     lo = t_lo if t_fix is None else t_fix
     dq0 = np.linalg.lstsq(J, dr, rcond=None)[0]
-    x0 = np.append(dq0, max(lo, np.max(np.abs(dq0)) / V_MAX, abs(A_ROW @ dq0).max() / B_MAX) if t_fix is None else t_fix)
+    x0 = np.append(
+        dq0, max(lo, np.max(np.abs(dq0)) / V_MAX, abs(A_ROW @ dq0).max() / B_MAX) if t_fix is None else t_fix
+    )
     bounds = [(None, None)] * n + [(lo, None if t_fix is None else t_fix)]
-    r = minimize(lambda x: x @ W @ x, x0, jac=lambda x: 2 * W @ x, constraints=cons, bounds=bounds, method="SLSQP",
-                 options=dict(ftol=1e-15, maxiter=500))
+    r = minimize(
+        lambda x: x @ W @ x,
+        x0,
+        jac=lambda x: 2 * W @ x,
+        constraints=cons,
+        bounds=bounds,
+        method="SLSQP",
+        options=dict(ftol=1e-15, maxiter=500),
+    )
     assert r.success, r.message
     return r.x[:n], r.x[n], r.fun
 
@@ -224,19 +243,22 @@ def test_householder_qr_is_a_qr():
     assert np.allclose(np.tril(np.asarray(R), -1), 0.0, atol=1e-5)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(J=np.ones((3, 2)), dr=np.ones(3)), "m <= n"),
-    (dict(J=np.ones((2, 4)), dr=np.ones(3)), "shape"),
-    (dict(v_max=0.0), "v_max"),
-    (dict(t_min=-1.0), "t_min"),
-    (dict(alpha=0.0), "alpha"),
-    (dict(weights=np.array([1.0, 1.0, -1.0, 1.0])), "weights"),
-    (dict(r_dot_max=0.0), "r_dot_max"),
-    (dict(t_step=0.0), "t_step"),
-    (dict(dq_min=np.full(4, 0.1), dq_max=np.ones(4)), "dq_min"),
-    (dict(dq_min=-np.ones(4)), "both"),
-    (dict(dr=np.array([np.nan, 0.0])), "dr"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(J=np.ones((3, 2)), dr=np.ones(3)), "m <= n"),
+        (dict(J=np.ones((2, 4)), dr=np.ones(3)), "shape"),
+        (dict(v_max=0.0), "v_max"),
+        (dict(t_min=-1.0), "t_min"),
+        (dict(alpha=0.0), "alpha"),
+        (dict(weights=np.array([1.0, 1.0, -1.0, 1.0])), "weights"),
+        (dict(r_dot_max=0.0), "r_dot_max"),
+        (dict(t_step=0.0), "t_step"),
+        (dict(dq_min=np.full(4, 0.1), dq_max=np.ones(4)), "dq_min"),
+        (dict(dq_min=-np.ones(4)), "both"),
+        (dict(dr=np.array([np.nan, 0.0])), "dr"),
+    ],
+)
 def test_bad_inputs_raise_eagerly(kwargs, match):
     args = dict(J=np.ones((2, 4)), dr=np.ones(2), v_max=0.5)
     args.update(kwargs)

@@ -18,10 +18,12 @@ def two_link(q, v):
     m1, m2, g = 1.0, 0.5, 9.81
     c2, s2 = jnp.cos(q[1]), jnp.sin(q[1])
     M = jnp.array([[m1 + 2 * m2 + 2 * m2 * c2, m2 + m2 * c2], [m2 + m2 * c2, m2 + 0 * c2]])
-    h = jnp.array([
-        -m2 * s2 * (2 * v[0] * v[1] + v[1] ** 2) + (m1 + m2) * g * jnp.cos(q[0]) + m2 * g * jnp.cos(q[0] + q[1]),
-        m2 * s2 * v[0] ** 2 + m2 * g * jnp.cos(q[0] + q[1]),
-    ])
+    h = jnp.array(
+        [
+            -m2 * s2 * (2 * v[0] * v[1] + v[1] ** 2) + (m1 + m2) * g * jnp.cos(q[0]) + m2 * g * jnp.cos(q[0] + q[1]),
+            m2 * s2 * v[0] ** 2 + m2 * g * jnp.cos(q[0] + q[1]),
+        ]
+    )
     return M, h
 
 
@@ -57,7 +59,9 @@ def test_conservative_box_is_realisable_at_its_vertices_and_tight():
         M, h = two_link(jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32))
         s = float(torque.box_scale(M, h, TAU, a_nom))
         lo, hi = torque.torque_acc_box_conservative(M, h, TAU, a_nom)
-        torques = [np.abs(np.asarray(M) @ np.array([x, y]) + np.asarray(h)) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
+        torques = [
+            np.abs(np.asarray(M) @ np.array([x, y]) + np.asarray(h)) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+        ]
         assert np.all(np.max(torques, axis=0) <= TAU * (1 + 1e-5))
         assert s > 0
         if s < 1:  # some vertex saturates some joint exactly
@@ -78,8 +82,18 @@ def test_mjx_alg4_matches_mujoco_c(planar):
     lim = planar.limits
     q, v = sample_states(np.random.default_rng(1), lim.q_min, lim.q_max, lim.v_max, 256)
     M_c, h_c = dynamics_c(planar.mj_model, q, v)
-    b = torque.acc_bounds_from_torque(planar.mass_and_bias, lim.q_min, lim.q_max, lim.v_max, planar.tau_max, 256,
-                                      None, a_nominal=planar.a_max_nominal, states=(q, v), chunk=64)
+    b = torque.acc_bounds_from_torque(
+        planar.mass_and_bias,
+        lim.q_min,
+        lim.q_max,
+        lim.v_max,
+        planar.tau_max,
+        256,
+        None,
+        a_nominal=planar.a_max_nominal,
+        states=(q, v),
+        chunk=64,
+    )
     lo, hi = torque.torque_acc_box(M_c, h_c, planar.tau_max)
     np.testing.assert_allclose(b.lower, lo.max(0), rtol=1e-4)
     np.testing.assert_allclose(b.upper, hi.min(0), rtol=1e-4)

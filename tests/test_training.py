@@ -26,25 +26,28 @@ def test_shipped_configs_load_and_validate():
     assert config.load("planar_reach_ppo").eval_episodes >= 10_000
 
 
-@pytest.mark.parametrize("bad, field", [
-    ({"shield": "nope"}, "shield"),
-    ({"env": "cartpole"}, "env"),
-    ({"num_timesteps": 0}, "num_timesteps"),
-    ({"ppo": {"num_envs": -4}}, "ppo.num_envs"),
-    ({"ppo": {"learning_rate": -1.0}}, "ppo.learning_rate"),
-    ({"colour": "red"}, "colour"),
-    ({"ppo": {"num_envs": 3}}, "num_envs"),
-    ({"episode_length": 201}, "action_repeat"),
-    ({"algo": "sac"}, "algo"),
-    ({"action_mode": "torque"}, "action_mode"),
-    ({"ik_observation": "yes"}, "ik_observation"),
-    ({"precision_reward": -1.0}, "precision_reward"),
-    ({"apg": {"horizon_length": 0}}, "apg.horizon_length"),
-    ({"apg": {"normalize_observations": 1}}, "apg.normalize_observations"),
-    ({"apg": {"policy_hidden": []}}, "apg.policy_hidden"),
-    ({"apg": {"horizon_length": 9, "action_repeat": 2}}, "apg.action_repeat"),
-    ({"apg": {"shield_gradient": "smooth"}}, "apg.shield_gradient"),
-])
+@pytest.mark.parametrize(
+    "bad, field",
+    [
+        ({"shield": "nope"}, "shield"),
+        ({"env": "cartpole"}, "env"),
+        ({"num_timesteps": 0}, "num_timesteps"),
+        ({"ppo": {"num_envs": -4}}, "ppo.num_envs"),
+        ({"ppo": {"learning_rate": -1.0}}, "ppo.learning_rate"),
+        ({"colour": "red"}, "colour"),
+        ({"ppo": {"num_envs": 3}}, "num_envs"),
+        ({"episode_length": 201}, "action_repeat"),
+        ({"algo": "sac"}, "algo"),
+        ({"action_mode": "torque"}, "action_mode"),
+        ({"ik_observation": "yes"}, "ik_observation"),
+        ({"precision_reward": -1.0}, "precision_reward"),
+        ({"apg": {"horizon_length": 0}}, "apg.horizon_length"),
+        ({"apg": {"normalize_observations": 1}}, "apg.normalize_observations"),
+        ({"apg": {"policy_hidden": []}}, "apg.policy_hidden"),
+        ({"apg": {"horizon_length": 9, "action_repeat": 2}}, "apg.action_repeat"),
+        ({"apg": {"shield_gradient": "smooth"}}, "apg.shield_gradient"),
+    ],
+)
 def test_bad_config_raises_with_the_field(bad, field):
     d = config.load("tiny").to_dict()
     for section in ("ppo", "apg"):
@@ -73,7 +76,9 @@ def test_apg_config_selects_the_shield_gradient():
         return env.gradient
 
     cfg = config.load("planar_reach_apg")
-    straight = config.from_dict({**cfg.to_dict(), "apg": {**cfg.to_dict()["apg"], "shield_gradient": "straight_through"}})
+    straight = config.from_dict(
+        {**cfg.to_dict(), "apg": {**cfg.to_dict()["apg"], "shield_gradient": "straight_through"}}
+    )
     assert shield_gradient(cfg) == "exact"
     assert shield_gradient(straight) == "straight_through"
     assert shield_gradient(straight.override(algo="ppo")) == "exact"  # PPO does not differentiate the env
@@ -113,8 +118,9 @@ def test_tally_counts_every_env_step(planar, action_repeat):
     from jaxlimits.envs import SafetyWrapper
 
     counts = tally.Tally()
-    env = tally.wrap_for_training(counts)(SafetyWrapper(planar, method="none"), episode_length=30 * action_repeat,
-                                          action_repeat=action_repeat)
+    env = tally.wrap_for_training(counts)(
+        SafetyWrapper(planar, method="none"), episode_length=30 * action_repeat, action_repeat=action_repeat
+    )
     batch, steps = 4, 80  # auto-resets after 30 steps: totals run across episodes
     state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), batch))
 
@@ -177,8 +183,7 @@ def test_sharded_evaluation_equals_one_device():
     """5 episodes (padded to 6) over 2 simulated host devices give the results of 1 device."""
     env = dict(os.environ)
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
-    proc = subprocess.run([sys.executable, "-c", SHARDING_SCRIPT], capture_output=True, text=True, env=env,
-                          timeout=600)
+    proc = subprocess.run([sys.executable, "-c", SHARDING_SCRIPT], capture_output=True, text=True, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.split("JSON", 1)[1])
     one, two = out["1"], out["2"]
@@ -192,8 +197,9 @@ def test_sharded_evaluation_equals_one_device():
 
 
 def _cli(*args, timeout=900):
-    proc = subprocess.run([sys.executable, "-m", "jaxlimits.training.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxlimits.training.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
     assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
     return proc
 
@@ -225,8 +231,17 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
     cfg, policy, params = brax_ppo.load_policy(out / "runs" / "viability")
     assert cfg.shield == "viability" and cfg.env == "planar_reach"
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(params))
-    proc = _cli("evaluate", "--run", str(out / "runs" / "viability"), "--episodes", "64", "--seed", str(cfg.seed + 1),
-                "--json", str(tmp_path / "eval.json"))
+    proc = _cli(
+        "evaluate",
+        "--run",
+        str(out / "runs" / "viability"),
+        "--episodes",
+        "64",
+        "--seed",
+        str(cfg.seed + 1),
+        "--json",
+        str(tmp_path / "eval.json"),
+    )
     again = json.loads((tmp_path / "eval.json").read_text())["viability"]
     for k in ("return_mean", "success_rate", "violations/position", "violations/velocity"):
         assert again[k] == pytest.approx(vi["evaluation"][k], rel=1e-6), k
@@ -236,8 +251,16 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
 def test_sb3_runs_on_the_gymnasium_env(tmp_path, algo):
     from jaxlimits.training import sb3
 
-    model, metrics = sb3.train("viability", total_timesteps=256, out=tmp_path, algo=algo, n_steps=128, batch_size=64,
-                               learning_starts=64, max_episode_steps=50)
+    model, metrics = sb3.train(
+        "viability",
+        total_timesteps=256,
+        out=tmp_path,
+        algo=algo,
+        n_steps=128,
+        batch_size=64,
+        learning_starts=64,
+        max_episode_steps=50,
+    )
     assert metrics["env_steps"] >= 256 and metrics["algo"] == algo
     assert metrics["violations/position"] == 0 and metrics["violations/velocity"] == 0
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}

@@ -43,9 +43,15 @@ from jaxlimits.training.config import RunConfig, from_dict
 def _networks(cfg: RunConfig, obs_size, action_size: int, preprocess_observations_fn=None):
     """APG policy network with the config's sizes (Brax's ``network_factory`` signature)."""
     if preprocess_observations_fn is None:
-        preprocess_observations_fn = running_statistics.normalize if cfg.apg.normalize_observations else (lambda x, y: x)
-    return apg_networks.make_apg_networks(obs_size, action_size, preprocess_observations_fn=preprocess_observations_fn,
-                                          hidden_layer_sizes=tuple(cfg.apg.policy_hidden))
+        preprocess_observations_fn = (
+            running_statistics.normalize if cfg.apg.normalize_observations else (lambda x, y: x)
+        )
+    return apg_networks.make_apg_networks(
+        obs_size,
+        action_size,
+        preprocess_observations_fn=preprocess_observations_fn,
+        hidden_layer_sizes=tuple(cfg.apg.policy_hidden),
+    )
 
 
 def policy_updates(cfg: RunConfig) -> int:
@@ -74,8 +80,10 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
     with (run_dir / "metrics.jsonl").open("w") as log:
 
         def progress(it, metrics):
-            row = {"step": int(it) * (updates // max(a.num_evals - 1, 1)) * a.num_envs * a.horizon_length,
-                   "wall_s": round(time.perf_counter() - t0, 2)}
+            row = {
+                "step": int(it) * (updates // max(a.num_evals - 1, 1)) * a.num_envs * a.horizon_length,
+                "wall_s": round(time.perf_counter() - t0, 2),
+            }
             row.update({k: _scalar(v) for k, v in metrics.items() if k.startswith(("eval/", "training/"))})
             row.update({f"train/{k}": v for k, v in counts.as_dict().items()})
             rows.append(row)
@@ -83,9 +91,13 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
             log.flush()
             if show_progress:
                 viol = row["train/violations/position"] + row["train/violations/velocity"]
-                print(f"[apg {cfg.shield:>9}] eval {it}/{a.num_evals - 1} {row['wall_s']:7.1f} s | "
-                      f"eval reward {row.get('eval/episode_reward', float('nan')):8.2f} | "
-                      f"training pos+vel violations {viol}", file=sys.stderr, flush=True)
+                print(
+                    f"[apg {cfg.shield:>9}] eval {it}/{a.num_evals - 1} {row['wall_s']:7.1f} s | "
+                    f"eval reward {row.get('eval/episode_reward', float('nan')):8.2f} | "
+                    f"training pos+vel violations {viol}",
+                    file=sys.stderr,
+                    flush=True,
+                )
 
         # brax 0.14.2's APG still calls jax.device_put_replicated and optax.global_norm (both
         # deprecated in the pinned versions), and its observation normaliser relies on rank
@@ -100,12 +112,23 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
 def _train_apg(env, cfg: RunConfig, counts, updates: int, progress):
     a = cfg.apg
     return brax_apg_train.train(
-        environment=env, episode_length=cfg.episode_length, policy_updates=updates,
-        wrap_env_fn=tally.wrap_for_training(counts), horizon_length=a.horizon_length, num_envs=a.num_envs,
-        num_evals=a.num_evals, action_repeat=a.action_repeat, num_eval_envs=a.num_eval_envs,
-        learning_rate=a.learning_rate, schedule_decay=a.schedule_decay, max_gradient_norm=a.max_gradient_norm,
-        normalize_observations=a.normalize_observations, deterministic_eval=True, seed=cfg.seed,
-        network_factory=functools.partial(_networks, cfg), progress_fn=progress,
+        environment=env,
+        episode_length=cfg.episode_length,
+        policy_updates=updates,
+        wrap_env_fn=tally.wrap_for_training(counts),
+        horizon_length=a.horizon_length,
+        num_envs=a.num_envs,
+        num_evals=a.num_evals,
+        action_repeat=a.action_repeat,
+        num_eval_envs=a.num_eval_envs,
+        learning_rate=a.learning_rate,
+        schedule_decay=a.schedule_decay,
+        max_gradient_norm=a.max_gradient_norm,
+        normalize_observations=a.normalize_observations,
+        deterministic_eval=True,
+        seed=cfg.seed,
+        network_factory=functools.partial(_networks, cfg),
+        progress_fn=progress,
     )
 
 

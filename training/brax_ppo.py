@@ -56,17 +56,29 @@ def env_from_config(cfg: RunConfig):
     """``make_env`` with the config's env, shield, action mode, observation and reward (and, for
     APG, the derivative of the shield its policy gradient goes through)."""
     shield_gradient = cfg.apg.shield_gradient if cfg.algo == "apg" else "exact"
-    return make_env(cfg.env, cfg.shield, cfg.action_mode, shield_gradient, ik_observation=cfg.ik_observation,
-                    precision_reward=cfg.precision_reward)
+    return make_env(
+        cfg.env,
+        cfg.shield,
+        cfg.action_mode,
+        shield_gradient,
+        ik_observation=cfg.ik_observation,
+        precision_reward=cfg.precision_reward,
+    )
 
 
 def _networks(cfg: RunConfig, obs_size, action_size: int, preprocess_observations_fn=None):
     """PPO networks with the config's sizes (Brax's ``network_factory`` signature)."""
     if preprocess_observations_fn is None:
-        preprocess_observations_fn = running_statistics.normalize if cfg.ppo.normalize_observations else (lambda x, y: x)
-    return ppo_networks.make_ppo_networks(obs_size, action_size, preprocess_observations_fn=preprocess_observations_fn,
-                                          policy_hidden_layer_sizes=tuple(cfg.ppo.policy_hidden),
-                                          value_hidden_layer_sizes=tuple(cfg.ppo.value_hidden))
+        preprocess_observations_fn = (
+            running_statistics.normalize if cfg.ppo.normalize_observations else (lambda x, y: x)
+        )
+    return ppo_networks.make_ppo_networks(
+        obs_size,
+        action_size,
+        preprocess_observations_fn=preprocess_observations_fn,
+        policy_hidden_layer_sizes=tuple(cfg.ppo.policy_hidden),
+        value_hidden_layer_sizes=tuple(cfg.ppo.value_hidden),
+    )
 
 
 def total_env_steps(cfg: RunConfig) -> int:
@@ -99,9 +111,13 @@ class _Progress:
     def __call__(self, step, make_policy, params):
         if self.evaluator is None:
             policy = deterministic_policy(make_policy)
-            self.evaluator = evaluate.Evaluator(self.env, policy, episodes=self.cfg.num_eval_envs,
-                                                episode_length=self.cfg.episode_length,
-                                                action_repeat=self.cfg.action_repeat)
+            self.evaluator = evaluate.Evaluator(
+                self.env,
+                policy,
+                episodes=self.cfg.num_eval_envs,
+                episode_length=self.cfg.episode_length,
+                action_repeat=self.cfg.action_repeat,
+            )
         per = self.evaluator(params, seed=10_000 + len(self.rows))
         ev = evaluate.summarize(per, self.cfg.episode_length)
         row = {"step": int(step), "wall_s": round(time.perf_counter() - self.t0, 2)}
@@ -115,9 +131,13 @@ class _Progress:
             frac = min(step / total, 1.0)
             bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
             viol = row["train/violations/position"] + row["train/violations/velocity"]
-            print(f"[{self.cfg.shield:>9}] [{bar}] {step:>10,d}/{total:,d} steps "
-                  f"{row['wall_s']:7.1f} s | eval return {ev['return_mean']:8.2f} success {ev['success_rate']:.2f} | "
-                  f"training pos+vel violations {viol}", file=sys.stderr, flush=True)
+            print(
+                f"[{self.cfg.shield:>9}] [{bar}] {step:>10,d}/{total:,d} steps "
+                f"{row['wall_s']:7.1f} s | eval return {ev['return_mean']:8.2f} success {ev['success_rate']:.2f} | "
+                f"training pos+vel violations {viol}",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def close(self):
         self.file.close()
@@ -137,8 +157,13 @@ def finish_run(cfg: RunConfig, run_dir: Path, params, counts: tally.Tally, wall:
     ``rows`` are the run's ``metrics.jsonl`` rows; the last one is the summary's ``final_eval``.
     """
     checkpoint.save(run_dir / "params.msgpack", params, meta=cfg.to_dict())
-    summary = {"config": cfg.to_dict(), "wall_s": wall, "training": counts.as_dict(),
-               "env_steps_per_s": counts.env_steps / wall, "final_eval": rows[-1] if rows else {}}
+    summary = {
+        "config": cfg.to_dict(),
+        "wall_s": wall,
+        "training": counts.as_dict(),
+        "env_steps_per_s": counts.env_steps / wall,
+        "final_eval": rows[-1] if rows else {},
+    }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -153,13 +178,25 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
     t0 = time.perf_counter()
     try:
         _, params, _ = brax_ppo_train.train(
-            environment=env, num_timesteps=cfg.num_timesteps, episode_length=cfg.episode_length,
-            action_repeat=p.action_repeat, num_envs=p.num_envs, batch_size=p.batch_size,
-            num_minibatches=p.num_minibatches, unroll_length=p.unroll_length,
-            num_updates_per_batch=p.num_updates_per_batch, learning_rate=p.learning_rate,
-            entropy_cost=p.entropy_cost, discounting=p.discounting, reward_scaling=p.reward_scaling,
-            normalize_observations=p.normalize_observations, num_evals=p.num_evals, run_evals=False,
-            seed=cfg.seed, policy_params_fn=progress, wrap_env_fn=tally.wrap_for_training(counts),
+            environment=env,
+            num_timesteps=cfg.num_timesteps,
+            episode_length=cfg.episode_length,
+            action_repeat=p.action_repeat,
+            num_envs=p.num_envs,
+            batch_size=p.batch_size,
+            num_minibatches=p.num_minibatches,
+            unroll_length=p.unroll_length,
+            num_updates_per_batch=p.num_updates_per_batch,
+            learning_rate=p.learning_rate,
+            entropy_cost=p.entropy_cost,
+            discounting=p.discounting,
+            reward_scaling=p.reward_scaling,
+            normalize_observations=p.normalize_observations,
+            num_evals=p.num_evals,
+            run_evals=False,
+            seed=cfg.seed,
+            policy_params_fn=progress,
+            wrap_env_fn=tally.wrap_for_training(counts),
             network_factory=functools.partial(_networks, cfg),
         )
     finally:

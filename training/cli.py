@@ -18,8 +18,10 @@ from jaxlimits._xla_flags import set_cpu_xla_flags
 
 
 def _add_run_flags(p, default_out):
-    p.add_argument("--config", help="config name in training/configs/ or a JSON path "
-                   "(default: <env>_<algo>, e.g. planar_reach_ppo)")
+    p.add_argument(
+        "--config",
+        help="config name in training/configs/ or a JSON path (default: <env>_<algo>, e.g. planar_reach_ppo)",
+    )
     p.add_argument("--env", choices=("planar_reach", "panda_reach"), help="override the config's env")
     p.add_argument("--algo", choices=("ppo", "apg"), help="override the config's algorithm")
     p.add_argument("--steps", type=int, help="override num_timesteps")
@@ -34,14 +36,16 @@ def _config(args, **extra):
 
     name = args.config or f"{args.env or 'planar_reach'}_{args.algo or 'ppo'}"
     cfg = config.load(name)
-    return cfg.override(env=args.env, algo=args.algo, num_timesteps=args.steps, seed=args.seed,
-                        eval_episodes=args.episodes, **extra)
+    return cfg.override(
+        env=args.env, algo=args.algo, num_timesteps=args.steps, seed=args.seed, eval_episodes=args.episodes, **extra
+    )
 
 
 def main(argv=None) -> int:
     set_cpu_xla_flags()
-    parser = argparse.ArgumentParser(prog="jaxlimits", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="jaxlimits", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     p_main = sub.add_parser("main", help="train with and without the shield, evaluate, compare (the main job)")
@@ -100,15 +104,22 @@ def _evaluate(args, parser):
     if args.run:
         cfg, policy, params = algos.load_policy(args.run)
         env = brax_ppo.env_from_config(cfg)
-        rows[cfg.shield] = evaluate.evaluate(env, policy, params, episodes=args.episodes,
-                                             episode_length=cfg.episode_length, action_repeat=cfg.action_repeat,
-                                             seed=args.seed)
+        rows[cfg.shield] = evaluate.evaluate(
+            env,
+            policy,
+            params,
+            episodes=args.episodes,
+            episode_length=cfg.episode_length,
+            action_repeat=cfg.action_repeat,
+            seed=args.seed,
+        )
     else:
         for shield in args.shield.split(","):
             env = brax_ppo.make_env(args.env, shield)
             policy = evaluate.scripted_policy(args.scripted, env.action_size)
-            rows[shield] = evaluate.evaluate(env, policy, None, episodes=args.episodes,
-                                             episode_length=args.episode_length, seed=args.seed)
+            rows[shield] = evaluate.evaluate(
+                env, policy, None, episodes=args.episodes, episode_length=args.episode_length, seed=args.seed
+            )
     print(evaluate.format_table(rows))
     if args.json:
         with open(args.json, "w") as f:

@@ -14,7 +14,11 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ENVS = ("planar_reach", "panda_reach")
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
-ACTION_MODES = ("acceleration", "velocity", "task_space")  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
+ACTION_MODES = (
+    "acceleration",
+    "velocity",
+    "task_space",
+)  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
 SHIELD_GRADIENTS = ("exact", "straight_through")  # jaxlimits' project_box gradients
 
 
@@ -91,8 +95,12 @@ class RunConfig:
         return getattr(self, self.algo).num_eval_envs
 
     def __post_init__(self):
-        checks = [("env", self.env, ENVS), ("algo", self.algo, ALGOS), ("shield", self.shield, SHIELDS),
-                  ("action_mode", self.action_mode, ACTION_MODES)]
+        checks = [
+            ("env", self.env, ENVS),
+            ("algo", self.algo, ALGOS),
+            ("shield", self.shield, SHIELDS),
+            ("action_mode", self.action_mode, ACTION_MODES),
+        ]
         for name, value, allowed in checks:
             if value not in allowed:
                 raise ValueError(f"config field {name!r} must be one of {allowed}, got {value!r}")
@@ -108,18 +116,24 @@ class RunConfig:
             _check_section(section, getattr(self, section))
         p = self.ppo
         if p.batch_size * p.num_minibatches % p.num_envs:
-            raise ValueError(f"ppo.batch_size * ppo.num_minibatches ({p.batch_size * p.num_minibatches}) must be a "
-                             f"multiple of ppo.num_envs ({p.num_envs}) (Brax PPO's requirement)")
+            raise ValueError(
+                f"ppo.batch_size * ppo.num_minibatches ({p.batch_size * p.num_minibatches}) must be a "
+                f"multiple of ppo.num_envs ({p.num_envs}) (Brax PPO's requirement)"
+            )
         if self.episode_length % self.action_repeat:
-            raise ValueError(f"episode_length ({self.episode_length}) must be a multiple of {self.algo}.action_repeat "
-                             f"({self.action_repeat})")
+            raise ValueError(
+                f"episode_length ({self.episode_length}) must be a multiple of {self.algo}.action_repeat "
+                f"({self.action_repeat})"
+            )
         a = self.apg
         if a.shield_gradient not in SHIELD_GRADIENTS:
-            raise ValueError(f"config field 'apg.shield_gradient' must be one of {SHIELD_GRADIENTS}, "
-                             f"got {a.shield_gradient!r}")
+            raise ValueError(
+                f"config field 'apg.shield_gradient' must be one of {SHIELD_GRADIENTS}, got {a.shield_gradient!r}"
+            )
         if a.horizon_length % a.action_repeat:
-            raise ValueError(f"apg.horizon_length ({a.horizon_length}) must be a multiple of apg.action_repeat "
-                             f"({a.action_repeat})")
+            raise ValueError(
+                f"apg.horizon_length ({a.horizon_length}) must be a multiple of apg.action_repeat ({a.action_repeat})"
+            )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -139,8 +153,9 @@ def _check_section(section: str, cfg) -> None:
         value = getattr(cfg, f.name)
         if f.type in (int, "int") and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
             raise ValueError(f"config field '{section}.{f.name}' must be a positive integer, got {value!r}")
-        if f.type in (float, "float") and not (isinstance(value, (int, float)) and not isinstance(value, bool)
-                                               and value >= 0):
+        if f.type in (float, "float") and not (
+            isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
+        ):
             raise ValueError(f"config field '{section}.{f.name}' must be a non-negative number, got {value!r}")
         if f.type in (bool, "bool") and not isinstance(value, bool):
             raise ValueError(f"config field '{section}.{f.name}' must be true or false, got {value!r}")

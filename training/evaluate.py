@@ -88,9 +88,11 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
 
     def body(carry, t):
         state, acc, held = carry
-        action = jax.lax.cond(t % action_repeat == 0,
-                              lambda: policy(params, state.obs, jnp.stack([k_episode, k_act]), t // action_repeat),
-                              lambda: held)
+        action = jax.lax.cond(
+            t % action_repeat == 0,
+            lambda: policy(params, state.obs, jnp.stack([k_episode, k_act]), t // action_repeat),
+            lambda: held,
+        )
         state = env.step(state, action)
         m = state.metrics
         acc = {
@@ -136,8 +138,9 @@ class Evaluator:
         self.padded = -(-episodes // len(self.devices)) * len(self.devices)
 
         def run(params, keys):
-            return jax.vmap(lambda k: _episode(env, policy, params, jax.random.wrap_key_data(k), episode_length,
-                                                 action_repeat))(keys)
+            return jax.vmap(
+                lambda k: _episode(env, policy, params, jax.random.wrap_key_data(k), episode_length, action_repeat)
+            )(keys)
 
         self._run = jax.jit(run)
 
@@ -152,11 +155,13 @@ class Evaluator:
         return {k: np.asarray(v)[: self.episodes] for k, v in out.items()}
 
 
-def rollout_episodes(env, policy, params, *, episodes: int, episode_length: int, action_repeat: int = 1,
-                     seed: int = 0, devices=None):
+def rollout_episodes(
+    env, policy, params, *, episodes: int, episode_length: int, action_repeat: int = 1, seed: int = 0, devices=None
+):
     """Per-episode results as NumPy arrays ``{name: (episodes,)}``, computed sharded over ``devices``."""
-    return Evaluator(env, policy, episodes=episodes, episode_length=episode_length, action_repeat=action_repeat,
-                     devices=devices)(params, seed)
+    return Evaluator(
+        env, policy, episodes=episodes, episode_length=episode_length, action_repeat=action_repeat, devices=devices
+    )(params, seed)
 
 
 def summarize(per_episode: dict, episode_length: int, success_radius: float = SUCCESS_RADIUS) -> dict:
@@ -177,12 +182,30 @@ def summarize(per_episode: dict, episode_length: int, success_radius: float = SU
     return row
 
 
-def evaluate(env, policy, params, *, episodes: int = 10_000, episode_length: int = 200, action_repeat: int = 1,
-             seed: int = 0, devices=None, success_radius: float = SUCCESS_RADIUS) -> dict:
+def evaluate(
+    env,
+    policy,
+    params,
+    *,
+    episodes: int = 10_000,
+    episode_length: int = 200,
+    action_repeat: int = 1,
+    seed: int = 0,
+    devices=None,
+    success_radius: float = SUCCESS_RADIUS,
+) -> dict:
     """Evaluate ``policy`` over ``episodes`` parallel episodes; returns ``summarize``'s row plus timing."""
     t0 = time.perf_counter()
-    per = rollout_episodes(env, policy, params, episodes=episodes, episode_length=episode_length,
-                           action_repeat=action_repeat, seed=seed, devices=devices)
+    per = rollout_episodes(
+        env,
+        policy,
+        params,
+        episodes=episodes,
+        episode_length=episode_length,
+        action_repeat=action_repeat,
+        seed=seed,
+        devices=devices,
+    )
     wall = time.perf_counter() - t0
     row = summarize(per, episode_length, success_radius)
     row.update(wall_s=wall, env_steps_per_s=row["env_steps"] / wall, devices=len(devices or jax.devices()))
@@ -191,10 +214,18 @@ def evaluate(env, policy, params, *, episodes: int = 10_000, episode_length: int
 
 def format_table(rows: dict) -> str:
     """A plain-text table, one line per shield (``rows``: name -> ``evaluate`` row)."""
-    cols = [("episodes", "{:d}"), ("return_mean", "{:.2f}"), ("success_rate", "{:.3f}"),
-            ("violations/position", "{:d}"), ("max_violation/position", "{:.3g}"),
-            ("violations/velocity", "{:d}"), ("max_violation/velocity", "{:.3g}"),
-            ("violations/torque", "{:d}"), ("intervention_mean", "{:.3g}"), ("nonfinite_actions", "{:d}")]
+    cols = [
+        ("episodes", "{:d}"),
+        ("return_mean", "{:.2f}"),
+        ("success_rate", "{:.3f}"),
+        ("violations/position", "{:d}"),
+        ("max_violation/position", "{:.3g}"),
+        ("violations/velocity", "{:d}"),
+        ("max_violation/velocity", "{:.3g}"),
+        ("violations/torque", "{:d}"),
+        ("intervention_mean", "{:.3g}"),
+        ("nonfinite_actions", "{:d}"),
+    ]
     head = ["shield"] + [c.replace("violations/", "viol ").replace("max_violation/", "max ") for c, _ in cols]
     lines = [head] + [[name] + [fmt.format(r[c]) for c, fmt in cols] for name, r in rows.items()]
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]

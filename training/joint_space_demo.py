@@ -73,13 +73,25 @@ def simulate(scenario: Scenario, variant: Variant):
 
     def step(state, _):
         q, v = state
-        b = jl.acc_bounds(q, v, lim, scenario.dt * variant.dt_factor, method=variant.method,
-                          integrator=variant.bounds_integrator,
-                          substeps=variant.substeps if variant.bounds_integrator == "semi_implicit" else 1)
+        b = jl.acc_bounds(
+            q,
+            v,
+            lim,
+            scenario.dt * variant.dt_factor,
+            method=variant.method,
+            integrator=variant.bounds_integrator,
+            substeps=variant.substeps if variant.bounds_integrator == "semi_implicit" else 1,
+        )
         a_des = scenario.kp * (q_ref - q) - scenario.kd * v
         a = jnp.clip(a_des, b.lower, b.upper)
-        nxt = jl.integrate_step(q, v, a, scenario.dt, variant.sim_integrator,
-                                variant.substeps if variant.sim_integrator == "semi_implicit" else 1)
+        nxt = jl.integrate_step(
+            q,
+            v,
+            a,
+            scenario.dt,
+            variant.sim_integrator,
+            variant.substeps if variant.sim_integrator == "semi_implicit" else 1,
+        )
         return (nxt.q, nxt.v), dict(q=q, v=v, a=a, lower=b.lower, upper=b.upper, q_high=nxt.q_high, q_low=nxt.q_low)
 
     init = (jnp.float32(scenario.q0), jnp.float32(0.0))
@@ -123,8 +135,10 @@ def format_table(rows) -> str:
     head = f"{'method':34s} {'bounds model':>14s} {'simulated as':>14s} {'max pos viol [rad]':>19s} {'max vel viol [rad/s]':>21s}"
     lines = [head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['label']:34s} {r['bounds_integrator']:>14s} {r['sim_integrator']:>14s} "
-                     f"{r['max_position_violation']:19.3e} {r['max_velocity_violation']:21.3e}")
+        lines.append(
+            f"{r['label']:34s} {r['bounds_integrator']:>14s} {r['sim_integrator']:>14s} "
+            f"{r['max_position_violation']:19.3e} {r['max_velocity_violation']:21.3e}"
+        )
     return "\n".join(lines)
 
 

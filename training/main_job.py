@@ -30,15 +30,27 @@ def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool 
         runs[shield] = run_dir
         run_cfg, policy, params = algos.load_policy(run_dir)
         env = brax_ppo.env_from_config(run_cfg)
-        row = evaluate.evaluate(env, policy, params, episodes=cfg.eval_episodes, episode_length=cfg.episode_length,
-                                action_repeat=cfg.action_repeat, seed=cfg.seed + 1)
-        results["shields"][shield] = {"training": summary["training"], "training_wall_s": summary["wall_s"],
-                                      "training_env_steps_per_s": summary["env_steps_per_s"], "evaluation": row}
+        row = evaluate.evaluate(
+            env,
+            policy,
+            params,
+            episodes=cfg.eval_episodes,
+            episode_length=cfg.episode_length,
+            action_repeat=cfg.action_repeat,
+            seed=cfg.seed + 1,
+        )
+        results["shields"][shield] = {
+            "training": summary["training"],
+            "training_wall_s": summary["wall_s"],
+            "training_env_steps_per_s": summary["env_steps_per_s"],
+            "evaluation": row,
+        }
     if cfg.action_mode == "velocity" and cfg.ik_observation:
         env = brax_ppo.env_from_config(cfg.override(shield="viability"))
         policy = evaluate.ik_reference_policy(env.action_size, env.limits.v_max)
-        results["reference"] = evaluate.evaluate(env, policy, None, episodes=cfg.eval_episodes,
-                                                 episode_length=cfg.episode_length, seed=cfg.seed + 1)
+        results["reference"] = evaluate.evaluate(
+            env, policy, None, episodes=cfg.eval_episodes, episode_length=cfg.episode_length, seed=cfg.seed + 1
+        )
     results["wall_s"] = time.perf_counter() - t0
     table = format_results(results)
     print(table)
@@ -50,15 +62,18 @@ def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool 
 
 def format_results(results: dict) -> str:
     """Markdown table: per shield, training violations (all env-steps) and evaluation figures."""
-    head = ("| shield | training env-steps | training pos / vel violations (max rad, rad/s) | train wall s (env-steps/s) "
-            "| eval episodes | eval success | eval return | eval pos / vel violations (max) | eval intervention rad/s² |")
+    head = (
+        "| shield | training env-steps | training pos / vel violations (max rad, rad/s) | train wall s (env-steps/s) "
+        "| eval episodes | eval success | eval return | eval pos / vel violations (max) | eval intervention rad/s² |"
+    )
     lines = [head, "|---" * 9 + "|"]
     for shield, r in results["shields"].items():
         t = r["training"]
         lines.append(
             f"| {shield} | {t['env_steps']:,} | {t['violations/position']:,} / {t['violations/velocity']:,} "
             f"({t['max_violation/position']:.3g}, {t['max_violation/velocity']:.3g}) "
-            f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {_evaluation_cells(r['evaluation'])}")
+            f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {_evaluation_cells(r['evaluation'])}"
+        )
     if "reference" in results:
         lines.append(f"| reference: scripted IK, viability | – | – | – | {_evaluation_cells(results['reference'])}")
     return "\n".join(lines)
@@ -66,6 +81,8 @@ def format_results(results: dict) -> str:
 
 def _evaluation_cells(e: dict) -> str:
     """The table's evaluation columns (and the row's closing bar) of one ``evaluate.evaluate`` row."""
-    return (f"{e['episodes']:,} | {e['success_rate']:.3f} | {e['return_mean']:.2f} "
-            f"| {e['violations/position']:,} / {e['violations/velocity']:,} "
-            f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |")
+    return (
+        f"{e['episodes']:,} | {e['success_rate']:.3f} | {e['return_mean']:.2f} "
+        f"| {e['violations/position']:,} / {e['violations/velocity']:,} "
+        f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |"
+    )

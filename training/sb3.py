@@ -51,9 +51,20 @@ class _ViolationCounter:
 ALGOS = ("ppo", "sac")
 
 
-def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *, algo: str = "ppo",
-          arm: str = "planar", max_episode_steps: int = 200, seed: int = 0, n_steps: int = 512,
-          batch_size: int = 64, learning_starts: int = 1000, **task):
+def train(
+    shield: str = "viability",
+    total_timesteps: int = 20_000,
+    out=None,
+    *,
+    algo: str = "ppo",
+    arm: str = "planar",
+    max_episode_steps: int = 200,
+    seed: int = 0,
+    n_steps: int = 512,
+    batch_size: int = 64,
+    learning_starts: int = 1000,
+    **task,
+):
     """Train SB3 PPO or SAC; returns ``(model, metrics)`` and writes ``out`` if given.
 
     ``n_steps`` is PPO's rollout length, ``learning_starts`` SAC's number of random steps before
@@ -82,9 +93,16 @@ def train(shield: str = "viability", total_timesteps: int = 20_000, out=None, *,
     else:
         model = SAC("MlpPolicy", env, learning_starts=learning_starts, **common)
     model.learn(total_timesteps=total_timesteps, callback=Callback())
-    metrics = {"algo": algo, "shield": shield, "arm": arm, "task": task, "env_steps": counter.env_steps, "episode_returns": counter.episode_returns,
-               **{f"violations/{k}": v for k, v in counter.counts.items()},
-               **{f"max_violation/{k}": v for k, v in counter.maxes.items()}}
+    metrics = {
+        "algo": algo,
+        "shield": shield,
+        "arm": arm,
+        "task": task,
+        "env_steps": counter.env_steps,
+        "episode_returns": counter.episode_returns,
+        **{f"violations/{k}": v for k, v in counter.counts.items()},
+        **{f"max_violation/{k}": v for k, v in counter.maxes.items()},
+    }
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

@@ -101,8 +101,12 @@ def wrap_for_training(tally: Tally):
     """A ``wrap_env_fn`` for Brax's trainers: ``StepTally`` below, ``TallyReporter`` above ``training.wrap``."""
 
     def wrap(env, episode_length=1000, action_repeat=1, randomization_fn=None):
-        inner = brax_training.wrap(StepTally(env), episode_length=episode_length, action_repeat=action_repeat,
-                                   randomization_fn=randomization_fn)
+        inner = brax_training.wrap(
+            StepTally(env),
+            episode_length=episode_length,
+            action_repeat=action_repeat,
+            randomization_fn=randomization_fn,
+        )
         return TallyReporter(inner, tally)
 
     return wrap

@@ -47,7 +47,7 @@ def bezier_points(s, q0=Q0, lengths=LENGTHS):
     P1 = P0 + jnp.asarray([-0.9, 0.5], s.dtype)
     P2 = P0 + jnp.asarray([-1.0, -0.5], s.dtype)
     s = s[:, None]
-    return (1 - s) ** 2 * P0 + 2 * s * (1 - s) * P1 + s ** 2 * P2
+    return (1 - s) ** 2 * P0 + 2 * s * (1 - s) * P1 + s**2 * P2
 
 
 def track_timescale(n_points=2000, r_dot_max=None, alpha=1.0, t_min=1e-4, dtype=jnp.float64):
@@ -65,8 +65,15 @@ def track_timescale(n_points=2000, r_dot_max=None, alpha=1.0, t_min=1e-4, dtype=
         r = timescale_ik(planar_jac(q), p - x, V_MAX, t_min=t_min, alpha=alpha, r_dot_max=r_dot_max)
         q1 = q + r.dq
         x1 = planar_fk(q1)
-        out = dict(T=r.t, qd=r.dq / r.t, ee_vel=(x1 - x) / r.t, ee_cmd=(p - x) / r.t, error=jnp.linalg.norm(x1 - p),
-                   reached=r.reached, q=q1)
+        out = dict(
+            T=r.t,
+            qd=r.dq / r.t,
+            ee_vel=(x1 - x) / r.t,
+            ee_cmd=(p - x) / r.t,
+            error=jnp.linalg.norm(x1 - p),
+            reached=r.reached,
+            q=q1,
+        )
         return q1, out
 
     _, out = jax.jit(lambda q: jax.lax.scan(step, q, pts[1:]))(q0)
@@ -94,8 +101,12 @@ def track_fixed(t_f, t_s=T_S, n_max=None, dtype=jnp.float64):
         r = fixed_time_ik(J, p - x, t_s, V_MAX)
         q1 = q + r.dq
         active = k * t_s < t_f - 0.5 * t_s
-        out = dict(qd=r.dq / t_s, error=jnp.linalg.norm(planar_fk(q1) - p, axis=-1), active=active,
-                   ee_vel=(planar_fk(q1) - x) / t_s)
+        out = dict(
+            qd=r.dq / t_s,
+            error=jnp.linalg.norm(planar_fk(q1) - p, axis=-1),
+            active=active,
+            ee_vel=(planar_fk(q1) - x) / t_s,
+        )
         return q1, out
 
     _, out = jax.jit(lambda q: jax.lax.scan(step, q, jnp.arange(n_max, dtype=dtype)))(q0)
@@ -134,10 +145,12 @@ def scenarios(quick=False):
         t0 = time.perf_counter()
         grid = np.round(np.arange(1.5, 8.0 + 1e-9, 0.1 if quick else 0.01), 4)
         tf, ratio = shortest_fixed_tf(grid)
-        res["conventional"] = dict(shortest_tf=tf, grid_step=float(grid[1] - grid[0]),
-                                   max_speed_ratio_at_scenario1_time=float(
-                                       ratio[np.argmin(np.abs(grid - res["scenario1"]["total_time"]))]),
-                                   seconds=time.perf_counter() - t0)
+        res["conventional"] = dict(
+            shortest_tf=tf,
+            grid_step=float(grid[1] - grid[0]),
+            max_speed_ratio_at_scenario1_time=float(ratio[np.argmin(np.abs(grid - res["scenario1"]["total_time"]))]),
+            seconds=time.perf_counter() - t0,
+        )
         if np.isfinite(tf):
             o = track_fixed(np.asarray([tf]))
             res["conventional"]["max_error_at_shortest"] = float(np.max(np.where(o["active"], o["error"], 0.0)))
@@ -150,10 +163,14 @@ def main(argv=None):
     print(f"{'case':<34}{'total time [s]':>16}{'max error [m]':>16}{'max |qd| [rad/s]':>18}{'max |ee v_i| [m/s]':>20}")
     for name in ("scenario1", "scenario2"):
         r = res[name]
-        print(f"{'time-scaled IK, ' + name:<34}{r['total_time']:>16.3f}{r['max_error']:>16.2e}"
-              f"{r['max_joint_speed']:>18.6f}{r['max_ee_speed_component']:>20.4f}")
+        print(
+            f"{'time-scaled IK, ' + name:<34}{r['total_time']:>16.3f}{r['max_error']:>16.2e}"
+            f"{r['max_joint_speed']:>18.6f}{r['max_ee_speed_component']:>20.4f}"
+        )
     c = res["conventional"]
-    print(f"{'conventional IK, shortest fixed t_f':<34}{c['shortest_tf']:>16.3f}{c.get('max_error_at_shortest', float('nan')):>16.2e}")
+    print(
+        f"{'conventional IK, shortest fixed t_f':<34}{c['shortest_tf']:>16.3f}{c.get('max_error_at_shortest', float('nan')):>16.2e}"
+    )
     print(json.dumps(res))
     return res
 

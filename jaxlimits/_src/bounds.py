@@ -82,8 +82,17 @@ def acc_bounds(
     return limit.bounds(q, v, a_prev)
 
 
-def bound_terms(q, v, limits: JointLimits, dt, method: str = "viability", integrator: str = "zoh",
-                substeps: int = 1, rounding_guard: bool = True, a_prev=None) -> dict:
+def bound_terms(
+    q,
+    v,
+    limits: JointLimits,
+    dt,
+    method: str = "viability",
+    integrator: str = "zoh",
+    substeps: int = 1,
+    rounding_guard: bool = True,
+    a_prev=None,
+) -> dict:
     """Each constraint's own bound, to see which one is active (Del Prete 2018, Fig. 3).
 
     Returns ``{"upper": {...}, "lower": {...}}``, each mapping the method's constraint names

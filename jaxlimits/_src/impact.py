@@ -215,8 +215,9 @@ def _bounds(q, v_pre, q_min, q_max, v_max, tau_imp_max, dt):
     return pos, vel, tau
 
 
-def impact_speed_cap(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG,
-                     v_pre_range=None) -> SpeedCap:
+def impact_speed_cap(
+    M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, v_pre_range=None
+) -> SpeedCap:
     """The largest approach velocity ``w >= 0`` whose predicted jumps satisfy (16), (17), (20).
 
     The jumps are those of ``impact_jump`` at the state ``(q, v)`` (the pre-impact state; for the
@@ -278,7 +279,9 @@ def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_im
     w0 = jump.w[..., None]
     # jump(a) = s * (w0 + dt g . a): rows  s dt g^T a  <=  hi - s w0  /  -s dt g^T a <= -lo + s w0
     b = lambda x: jnp.broadcast_to(f(x), lead)  # noqa: E731
-    (plo, phi), (_, _), (tlo, thi) = _bounds(q, v, b(limits.q_min), b(limits.q_max), b(limits.v_max), b(tau_imp_max), dt)
+    (plo, phi), (_, _), (tlo, thi) = _bounds(
+        q, v, b(limits.q_min), b(limits.q_max), b(limits.v_max), b(tau_imp_max), dt
+    )
     sq, st = jump.dq_dw, jump.dtau_dw
     outer_q = dt * sq[..., :, None] * g[..., None, :]  # (..., n, n)
     outer_t = dt * st[..., :, None] * g[..., None, :]
@@ -289,11 +292,17 @@ def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_im
     G = jnp.concatenate([outer_q, -outer_q, vel_G, -vel_G, outer_t, -outer_t], axis=-2)
     lead = G.shape[:-2]
     bc = lambda x: jnp.broadcast_to(x, lead + (n,))  # noqa: E731
-    h = jnp.concatenate([
-        bc(phi - sq * w0), bc(-plo + sq * w0),
-        bc(vmax - v - sq * w0), bc(vmax + v + sq * w0),
-        bc(thi - st * w0), bc(-tlo + st * w0),
-    ], axis=-1)
+    h = jnp.concatenate(
+        [
+            bc(phi - sq * w0),
+            bc(-plo + sq * w0),
+            bc(vmax - v - sq * w0),
+            bc(vmax + v + sq * w0),
+            bc(thi - st * w0),
+            bc(-tlo + st * w0),
+        ],
+        axis=-1,
+    )
     return G, h
 
 

@@ -27,8 +27,9 @@ class ImpactCap(AccelerationLimit):
 
     has_rows = True
 
-    def __init__(self, M, J, normal, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, margin=1.0,
-                 v_pre_range=None):
+    def __init__(
+        self, M, J, normal, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, margin=1.0, v_pre_range=None
+    ):
         if not 0.0 < float(margin) <= 1.0:
             raise ValueError(f"ImpactCap: margin must be in (0, 1], got {margin!r}")
         self.M, self.J, self.normal, self.limits = M, J, normal, limits
@@ -36,8 +37,20 @@ class ImpactCap(AccelerationLimit):
         self.reg, self.margin, self.v_pre_range = reg, margin, v_pre_range
 
     def cap(self, q, v):
-        c = impact_speed_cap(self.M, self.J, self.normal, q, v, self.limits, self.tau_imp_max, self.dt, self.c_max,
-                             self.dt_impact, self.reg, v_pre_range=self.v_pre_range).cap
+        c = impact_speed_cap(
+            self.M,
+            self.J,
+            self.normal,
+            q,
+            v,
+            self.limits,
+            self.tau_imp_max,
+            self.dt,
+            self.c_max,
+            self.dt_impact,
+            self.reg,
+            v_pre_range=self.v_pre_range,
+        ).cap
         return c * self.margin
 
     def evaluate(self, q, v, a_prev=None) -> Terms:

@@ -65,7 +65,6 @@ from __future__ import annotations
 
 import functools
 
-import numpy as np
 
 import jax
 import jax.numpy as jnp
@@ -73,7 +72,6 @@ import jax.numpy as jnp
 from jaxlimits._src.jerk_condition import check_jerk_condition
 from jaxlimits._src.joint_state import JointArrays, check_limits_type, guard_limits, inside_limits, joint_arrays
 from jaxlimits._src.limit import AccelerationLimit, Bounds, Terms, combine, toward_upper_side
-from jaxlimits._src.limits import JointLimits
 from jaxlimits._src.safe_math import tiny_floor
 from jaxlimits._src.tracing import is_traced
 
@@ -151,8 +149,11 @@ def _crossing_step(p, q):
     s = jnp.sqrt(jnp.maximum(-p, 0.0))
     mq = jnp.maximum(-q, tiny_floor(q.dtype))
     c = jnp.exp(jnp.log(mq) / 3.0)
-    x = jnp.where(p < 0, jnp.where(q < 0, 1.3248 * jnp.maximum(s, c), s),
-                  jnp.where(q < 0, jnp.minimum(c, mq / jnp.maximum(p, tiny_floor(p.dtype))), 0.0))
+    x = jnp.where(
+        p < 0,
+        jnp.where(q < 0, 1.3248 * jnp.maximum(s, c), s),
+        jnp.where(q < 0, jnp.minimum(c, mq / jnp.maximum(p, tiny_floor(p.dtype))), 0.0),
+    )
     for _ in range(NEWTON_STEPS):
         g = (x * x + p) * x + q
         slope = 3.0 * x * x + p

@@ -183,8 +183,11 @@ def recovery_envelope(a_max, j_max, dt, integrator="zoh", substeps=1, v_max=None
     and only if ``q_max - q_min >= travel`` and ``v_max >= speed``.
     """
     T, n = _check_discretisation(dt, integrator, substeps)
-    A, J, V = np.broadcast_arrays(np.asarray(a_max, np.float64), np.asarray(j_max, np.float64),
-                                  np.asarray(np.inf if v_max is None else v_max, np.float64))
+    A, J, V = np.broadcast_arrays(
+        np.asarray(a_max, np.float64),
+        np.asarray(j_max, np.float64),
+        np.asarray(np.inf if v_max is None else v_max, np.float64),
+    )
     return _envelope(A, J * T, V, T, integrator, n)
 
 
@@ -208,8 +211,9 @@ def rounding_margin(limits, T, integrator, n):
     ``m = R eps (max|q_lim| + 2 v_max^2 / A)``); the condition must hold for those too. float32 ``eps``
     (the larger one; float64 needs ~1e-9 of this). Returns ``(range taken, relative v_max taken, delta factor)``.
     """
-    q_min, q_max, v_max, A, J = (np.asarray(getattr(limits, f), np.float64)
-                                 for f in ("q_min", "q_max", "v_max", "a_max", "j_max"))
+    q_min, q_max, v_max, A, J = (
+        np.asarray(getattr(limits, f), np.float64) for f in ("q_min", "q_max", "v_max", "a_max", "j_max")
+    )
     delta = J * T
     roundings = (3 if integrator == "zoh" else n) + EXTRA_GUARD_ROUNDINGS
     stop_steps = np.ceil(v_max / (A * T)) + np.ceil(3.0 * A / delta) + 1.0
@@ -271,8 +275,10 @@ def _verdict(key, dt, integrator, substeps):
     f = {name: np.frombuffer(raw, np.float64).reshape(shape) for name, (shape, raw) in zip(_FIELDS, key)}
     limits = _Fields(**f)
     span_needed, v_needed, _ = jerk_condition_needs(limits, dt, integrator, substeps)
-    span, vmax, span_needed, v_needed, A, J = (np.atleast_1d(x) for x in np.broadcast_arrays(
-        f["q_max"] - f["q_min"], f["v_max"], span_needed, v_needed, f["a_max"], f["j_max"]))
+    span, vmax, span_needed, v_needed, A, J = (
+        np.atleast_1d(x)
+        for x in np.broadcast_arrays(f["q_max"] - f["q_min"], f["v_max"], span_needed, v_needed, f["a_max"], f["j_max"])
+    )
     short_span, short_v = span < span_needed, vmax < v_needed
     if not np.any(short_span | short_v):
         return None
@@ -281,9 +287,12 @@ def _verdict(key, dt, integrator, substeps):
         parts = [f"q_max - q_min = {span[j]:.6g} < {span_needed[j]:.6g} needed"] if short_span[j] else []
         parts += [f"v_max = {vmax[j]:.6g} < {v_needed[j]:.6g} needed"] if short_v[j] else []
         lines.append(f"joint {j}: " + ", ".join(parts) + f" (a_max={A[j]:.6g}, j_max={J[j]:.6g})")
-    return ("the jerk-aware bounds are exact only with room to recover from the worst max-braking stop "
-            f"(check_jerk_condition; dt={dt!r}, integrator={integrator!r}, substeps={substeps}): " + "; ".join(lines)
-            + ". The recovery needs the range and v_max above (raise j_max, lower a_max, or shorten dt).")
+    return (
+        "the jerk-aware bounds are exact only with room to recover from the worst max-braking stop "
+        f"(check_jerk_condition; dt={dt!r}, integrator={integrator!r}, substeps={substeps}): "
+        + "; ".join(lines)
+        + ". The recovery needs the range and v_max above (raise j_max, lower a_max, or shorten dt)."
+    )
 
 
 class _Fields(NamedTuple):

@@ -54,8 +54,16 @@ def joint_arrays(q, v, limits: JointLimits, a_prev=None) -> JointArrays:
     def cast(x):
         return None if x is None else jnp.broadcast_to(jnp.asarray(x).astype(dtype), shape)
 
-    return JointArrays(cast(state["q"]), cast(state["v"]), cast(state.get("a_prev")), cast(limits.q_min),
-                       cast(limits.q_max), cast(limits.v_max), cast(limits.a_max), cast(limits.j_max))
+    return JointArrays(
+        cast(state["q"]),
+        cast(state["v"]),
+        cast(state.get("a_prev")),
+        cast(limits.q_min),
+        cast(limits.q_max),
+        cast(limits.v_max),
+        cast(limits.a_max),
+        cast(limits.j_max),
+    )
 
 
 def guard_limits(q_min, q_max, v_max, a_max, roundings, stop_steps):

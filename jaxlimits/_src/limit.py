@@ -139,8 +139,10 @@ class AccelerationLimit(abc.ABC):
         Refused (``TypeError``) for a limit with halfspace rows, which a box cannot carry: use ``constraint``.
         """
         if self.has_rows:
-            raise TypeError(f"{type(self).__name__} is a halfspace, not a box per joint: use .constraint() "
-                            "(Bounds and rows G a <= h) or jl.intersect")
+            raise TypeError(
+                f"{type(self).__name__} is a halfspace, not a box per joint: use .constraint() "
+                "(Bounds and rows G a <= h) or jl.intersect"
+            )
         return combine(self.evaluate(q, v, a_prev), self.fuse_sides)
 
     def constraint(self, q, v, a_prev=None) -> Constraint:

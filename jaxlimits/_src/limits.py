@@ -104,6 +104,9 @@ class JointLimits:
         return obj
 
     def __repr__(self) -> str:
-        body = ", ".join(f"{f}={np.asarray(getattr(self, f)).tolist() if self.concrete else getattr(self, f)}"
-                         for f in _FIELDS if getattr(self, f) is not None)
+        body = ", ".join(
+            f"{f}={np.asarray(getattr(self, f)).tolist() if self.concrete else getattr(self, f)}"
+            for f in _FIELDS
+            if getattr(self, f) is not None
+        )
         return f"JointLimits({body})"

@@ -27,8 +27,9 @@ def register_method(name: str, family: type) -> None:
     METHODS[name] = family
 
 
-def make_limit(method: str, limits, dt, integrator: str = "zoh", substeps: int = 1,
-               rounding_guard: bool = True) -> AccelerationLimit:
+def make_limit(
+    method: str, limits, dt, integrator: str = "zoh", substeps: int = 1, rounding_guard: bool = True
+) -> AccelerationLimit:
     """The family ``method`` for these limits and this discretisation (all checks eager)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {tuple(METHODS)}, got {method!r}")

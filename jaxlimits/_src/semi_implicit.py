@@ -53,7 +53,11 @@ def substep_argmin(d, hv, n: int):
         return jnp.ones_like(d)
     up = hv > 0
     k = jnp.clip(jnp.floor(2.0 * d / jnp.where(up, hv, 1.0)) + 1.0, 1.0, float(n))
-    k = k + jnp.where((k < n) & (k * hv <= 2.0 * d), 1.0, 0.0) - jnp.where((k > 1) & ((k - 1.0) * hv > 2.0 * d), 1.0, 0.0)
+    k = (
+        k
+        + jnp.where((k < n) & (k * hv <= 2.0 * d), 1.0, 0.0)
+        - jnp.where((k > 1) & ((k - 1.0) * hv > 2.0 * d), 1.0, 0.0)
+    )
     k_end = jnp.where((d < 0) & ((n + 2.0) * d <= n * hv), 1.0, float(n))
     return jnp.where(up, k, k_end)
 
@@ -157,7 +161,10 @@ class SemiImplicit:
         k_lo, k_hi = jnp.maximum(i * n, 1.0), (i + 1.0) * n
         k0 = jnp.floor(t_star / h)
         out = []
-        ks = (jnp.where(regular, jnp.clip(k0, k_lo, k_hi), k_lo), jnp.where(regular, jnp.clip(k0 + 1.0, k_lo, k_hi), k_hi))
+        ks = (
+            jnp.where(regular, jnp.clip(k0, k_lo, k_hi), k_lo),
+            jnp.where(regular, jnp.clip(k0 + 1.0, k_lo, k_hi), k_hi),
+        )
         for K in ks:
             t = K * h
             N = D3 - (Vp - 0.5 * delta * h * i) * t + 0.5 * delta * i * t * t

@@ -178,7 +178,7 @@ def _prepare(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fi
     if A is not None:
         bcap = jnp.minimum(b_max, -b_min)
         t_f = jnp.maximum(t_f, jnp.max(jnp.abs(A) @ big / bcap))
-    F = jnp.sum((big / D) ** 2) + alpha * t_f ** 2
+    F = jnp.sum((big / D) ** 2) + alpha * t_f**2
     t_hi = t_lo + 2.0 * jnp.sqrt(F / alpha) + 2.0 * t_f
     z_hi = 2.0 * jnp.sqrt(F)
     if fixed:  # |D Q2 z| <= v T + |dq_p| on the velocity rows' feasible set (and near it)
@@ -244,8 +244,9 @@ def _core(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fix, 
         dq_min = dq_max = jnp.zeros((B, 0), dtype)
 
     def prep(Ji, dri, loi, hii, tli):
-        return _prepare(Ji, dri, v_min, v_max, w, loi if pos else None, hii if pos else None, A, b_min, b_max, tli,
-                        t_fix, alpha)
+        return _prepare(
+            Ji, dri, v_min, v_max, w, loi if pos else None, hii if pos else None, A, b_min, b_max, tli, t_fix, alpha
+        )
 
     lower, upper, G, h, aux = jax.vmap(prep)(J, dr, dq_min, dq_max, t_lo)
     if t_fix is None:
@@ -259,8 +260,9 @@ def _core(J, dr, v_min, v_max, w, dq_min, dq_max, A, b_min, b_max, t_lo, t_fix, 
         y, conv = lower, jnp.ones((B,), bool)
 
     def fin(yi, Ji, dri, loi, hii, tli, auxi):
-        return _finish(yi, Ji, dri, v_min, v_max, loi if pos else None, hii if pos else None, A, b_min, b_max, tli,
-                       t_fix, auxi)
+        return _finish(
+            yi, Ji, dri, v_min, v_max, loi if pos else None, hii if pos else None, A, b_min, b_max, tli, t_fix, auxi
+        )
 
     dq, T, reached, res = jax.vmap(fin)(y, J, dr, dq_min, dq_max, t_lo, aux)
     return TimeScaleResult(dq, T, T, jnp.ones(T.shape, jnp.int32), reached, res, conv)
@@ -272,8 +274,26 @@ def _round(out, t_step):
     return out._replace(t=steps * t_step, steps=steps.astype(jnp.int32))
 
 
-def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_max, dq_min, dq_max, A, b_min, b_max,
-           t_step, max_iter, fname):
+def _solve(
+    J,
+    dr,
+    v_max,
+    v_min,
+    t_min,
+    t_fix,
+    alpha,
+    weights,
+    r_dot_max,
+    r_norm_max,
+    dq_min,
+    dq_max,
+    A,
+    b_min,
+    b_max,
+    t_step,
+    max_iter,
+    fname,
+):
     J0 = jnp.asarray(J)
     dtype = jnp.promote_types(J0.dtype, jnp.float32)
     J = _as(J, dtype, "J")
@@ -307,8 +327,10 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
         lo_n, hi_n = concrete(dq_min), concrete(dq_max)
         if lo_n is not None and hi_n is not None:
             if np.any(lo_n > 0) or np.any(hi_n < 0):
-                raise ValueError(f"{fname}: need dq_min <= 0 <= dq_max (the current position inside its limits), "
-                                 f"got dq_min={lo_n.tolist()}, dq_max={hi_n.tolist()}")
+                raise ValueError(
+                    f"{fname}: need dq_min <= 0 <= dq_max (the current position inside its limits), "
+                    f"got dq_min={lo_n.tolist()}, dq_max={hi_n.tolist()}"
+                )
         dq_min = _as(dq_min, dtype, "dq_min")
         dq_max = _as(dq_max, dtype, "dq_max")
     if A is not None:
@@ -321,11 +343,14 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
         _check_positive("-b_min", _negated(b_min))
         b_min = jnp.broadcast_to(_as(b_min, dtype, "b_min"), (A.shape[0],))
         b_max = jnp.broadcast_to(_as(b_max, dtype, "b_max"), (A.shape[0],))
-    if max_iter is not None and (isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1):
+    if max_iter is not None and (
+        isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1
+    ):
         raise ValueError(f"{fname}: max_iter must be an integer >= 1, got {max_iter!r}")
 
-    batch = jnp.broadcast_shapes(J.shape[:-2], dr.shape[:-1],
-                                 *([] if dq_min is None else [dq_min.shape[:-1], dq_max.shape[:-1]]))
+    batch = jnp.broadcast_shapes(
+        J.shape[:-2], dr.shape[:-1], *([] if dq_min is None else [dq_min.shape[:-1], dq_max.shape[:-1]])
+    )
     B = int(np.prod(batch)) if batch else 1
     Jb = jnp.broadcast_to(J, batch + (m, n)).reshape(B, m, n)
     drb = jnp.broadcast_to(dr, batch + (m,)).reshape(B, m)
@@ -344,16 +369,46 @@ def _solve(J, dr, v_max, v_min, t_min, t_fix, alpha, weights, r_dot_max, r_norm_
             t_lo = jnp.maximum(t_lo, _safe_norm(drb) / jnp.asarray(r_norm_max, dtype))
     tf = None if t_fix is None else jnp.asarray(t_fix, dtype)
     ts = None if (t_step is None or t_fix is not None) else jnp.asarray(t_step, dtype)
-    out = _core(Jb, drb, v_min, v_max, w, lo_b, hi_b, A, b_min, b_max, t_lo, tf, alpha,
-                None if max_iter is None else int(max_iter))
+    out = _core(
+        Jb,
+        drb,
+        v_min,
+        v_max,
+        w,
+        lo_b,
+        hi_b,
+        A,
+        b_min,
+        b_max,
+        t_lo,
+        tf,
+        alpha,
+        None if max_iter is None else int(max_iter),
+    )
     if ts is not None:
         out = _round(out, ts)
     return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), out)
 
 
-def timescale_ik(J, dr, v_max, *, v_min=None, t_min=1e-3, alpha=1.0, weights=None, r_dot_max=None, r_norm_max=None,
-                 dq_min=None, dq_max=None, A=None, b_min=None, b_max=None, t_step=None,
-                 max_iter=None) -> TimeScaleResult:
+def timescale_ik(
+    J,
+    dr,
+    v_max,
+    *,
+    v_min=None,
+    t_min=1e-3,
+    alpha=1.0,
+    weights=None,
+    r_dot_max=None,
+    r_norm_max=None,
+    dq_min=None,
+    dq_max=None,
+    A=None,
+    b_min=None,
+    b_max=None,
+    t_step=None,
+    max_iter=None,
+) -> TimeScaleResult:
     """Time-scaled IK step: ``(dq, T)`` solving the paper's QP (17) (and (21) with end-effector caps).
 
     ``min dq^T Q dq + alpha T^2`` s.t. ``J dq = dr``, ``v_min T <= dq <= v_max T``,
@@ -384,12 +439,43 @@ def timescale_ik(J, dr, v_max, *, v_min=None, t_min=1e-3, alpha=1.0, weights=Non
     non-positive ``v_max``/``t_min``/``alpha``/``weights``/caps/``t_step``, non-finite values,
     ``dq_min > 0`` or ``dq_max < 0``.
     """
-    return _solve(J, dr, v_max, v_min, t_min, None, alpha, weights, r_dot_max, r_norm_max, dq_min, dq_max, A, b_min,
-                  b_max, t_step, max_iter, "timescale_ik")
+    return _solve(
+        J,
+        dr,
+        v_max,
+        v_min,
+        t_min,
+        None,
+        alpha,
+        weights,
+        r_dot_max,
+        r_norm_max,
+        dq_min,
+        dq_max,
+        A,
+        b_min,
+        b_max,
+        t_step,
+        max_iter,
+        "timescale_ik",
+    )
 
 
-def fixed_time_ik(J, dr, t, v_max, *, v_min=None, weights=None, dq_min=None, dq_max=None, A=None, b_min=None,
-                  b_max=None, max_iter=None) -> TimeScaleResult:
+def fixed_time_ik(
+    J,
+    dr,
+    t,
+    v_max,
+    *,
+    v_min=None,
+    weights=None,
+    dq_min=None,
+    dq_max=None,
+    A=None,
+    b_min=None,
+    b_max=None,
+    max_iter=None,
+) -> TimeScaleResult:
     """Conventional velocity IK (5) with a fixed sampling time ``t`` [s]: the baseline.
 
     ``min dq^T Q dq`` s.t. ``J dq = dr`` first, then the inequalities (``v_min t <= dq <= v_max t``
@@ -397,8 +483,26 @@ def fixed_time_ik(J, dr, t, v_max, *, v_min=None, weights=None, dq_min=None, dq_
     (the paper: "the solver tries first to satisfy the equality constraints"). ``reached`` as in
     ``timescale_ik``; ``dq / t`` may exceed the velocity limits (check it: that is the point).
     """
-    return _solve(J, dr, v_max, v_min, None, t, None, weights, None, None, dq_min, dq_max, A, b_min, b_max, None,
-                  max_iter, "fixed_time_ik")
+    return _solve(
+        J,
+        dr,
+        v_max,
+        v_min,
+        None,
+        t,
+        None,
+        weights,
+        None,
+        None,
+        dq_min,
+        dq_max,
+        A,
+        b_min,
+        b_max,
+        None,
+        max_iter,
+        "fixed_time_ik",
+    )
 
 
 __all__ = ["TimeScaleResult", "fixed_time_ik", "householder_qr", "timescale_ik"]

@@ -81,8 +81,18 @@ def sample_states(key, q_min, q_max, v_max, n_samples: int, dtype=jnp.float32):
     return q, jnp.where(vertex, jnp.sign(u), u) * v_max[None]
 
 
-def acc_bounds_from_torque(dynamics: Callable, q_min, q_max, v_max, tau_max, n_samples: int, key,
-                           a_nominal=None, chunk: int = 8192, states=None) -> TorqueBounds:
+def acc_bounds_from_torque(
+    dynamics: Callable,
+    q_min,
+    q_max,
+    v_max,
+    tau_max,
+    n_samples: int,
+    key,
+    a_nominal=None,
+    chunk: int = 8192,
+    states=None,
+) -> TorqueBounds:
     """Alg. 4 of Del Prete 2018: worst-case acceleration bounds over ``n_samples`` random states.
 
     Args:
@@ -125,10 +135,20 @@ def acc_bounds_from_torque(dynamics: Callable, q_min, q_max, v_max, tau_max, n_s
             s = jnp.minimum(s, jnp.min(jnp.where(ok, box_scale(M, h, tau, a_nom), jnp.inf)))
         return (lo, hi, s), None
 
-    init = (jnp.full((n,), -jnp.inf, jnp.float32), jnp.full((n,), jnp.inf, jnp.float32), jnp.array(jnp.inf, jnp.float32))
+    init = (
+        jnp.full((n,), -jnp.inf, jnp.float32),
+        jnp.full((n,), jnp.inf, jnp.float32),
+        jnp.array(jnp.inf, jnp.float32),
+    )
     (lo, hi, s), _ = jax.lax.scan(body, init, (q, v, valid))
     return TorqueBounds(lo, hi, s)
 
 
-__all__ = ["TorqueBounds", "acc_bounds_from_torque", "box_scale", "sample_states", "torque_acc_box",
-           "torque_acc_box_conservative"]
+__all__ = [
+    "TorqueBounds",
+    "acc_bounds_from_torque",
+    "box_scale",
+    "sample_states",
+    "torque_acc_box",
+    "torque_acc_box_conservative",
+]
