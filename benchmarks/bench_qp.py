@@ -40,7 +40,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxlimits as jl  # noqa: E402
-from jaxlimits._src.qp_linalg import chol_solve, masked_matrix  # noqa: E402
+from jaxlimits.internal import chol_solve, masked_matrix  # noqa: E402
 
 N = 7
 
@@ -86,6 +86,7 @@ def methods(lo, hi):
     def boxcdqp(xd, W, G, h, act):
         def one(x, w):
             return cd.run(jnp.clip(x, lo, hi), params_obj=(w, -w @ x), params_ineq=(lo, hi)).params
+
         return jax.vmap(one)(xd, W)
 
     osqp = jaxopt.BoxOSQP(tol=1e-6, maxiter=4000, implicit_diff=True)
@@ -94,6 +95,7 @@ def methods(lo, hi):
         def one(x, w):
             A = jnp.eye(N, dtype=x.dtype)
             return osqp.run(params_obj=(w, -w @ x), params_eq=A, params_ineq=(lo, hi)).params.primal[0]
+
         return jax.vmap(one)(xd, W)
 
     def boxosqp_half(xd, W, G, h, act):
@@ -102,6 +104,7 @@ def methods(lo, hi):
             l = jnp.concatenate([lo, jnp.full((1,), -1e20, x.dtype)])
             u = jnp.concatenate([hi, hh])
             return osqp.run(params_obj=(w, -w @ x), params_eq=A, params_ineq=(l, u)).params.primal[0]
+
         return jax.vmap(one)(xd, W, G, h)
 
     def qpax_dense(xd, W, G, h, act):
@@ -115,8 +118,15 @@ def methods(lo, hi):
 
         rows = [jnp.eye(N, dtype=x.dtype), -jnp.eye(N, dtype=x.dtype)] + ([] if g is None else [g])
         rhs = [hi, -lo] + ([] if g is None else [hh])
-        return qpax.solve_qp_primal(w, -w @ x, jnp.zeros((0, N), x.dtype), jnp.zeros((0,), x.dtype),
-                                    jnp.concatenate(rows), jnp.concatenate(rhs), solver_tol=1e-5)
+        return qpax.solve_qp_primal(
+            w,
+            -w @ x,
+            jnp.zeros((0, N), x.dtype),
+            jnp.zeros((0,), x.dtype),
+            jnp.concatenate(rows),
+            jnp.concatenate(rhs),
+            solver_tol=1e-5,
+        )
 
     def floor_one_product(xd, W, G, h, act):
         # Not a solver: the least any exact dense-metric method must do (clip, then read W once to
@@ -137,6 +147,7 @@ def methods(lo, hi):
             x_act = jnp.where(a < 0, lo, jnp.where(a > 0, hi, 0.0))
             rhs = jnp.where(free, w @ (x - x_act), x_act)
             return chol_solve(masked_matrix(w, free), rhs)
+
         return jax.vmap(one)(xd, W, act)
 
     return {
@@ -153,8 +164,18 @@ def methods(lo, hi):
     }
 
 
-REFERENCE_OF = {"floor": "dense", "oracle": "dense", "qpax": "dense", "qpax_halfspace": "halfspace", "clip": "clip", "dense": "dense", "halfspace": "halfspace", "BoxCDQP": "dense",
-                "BoxOSQP": "dense", "BoxOSQP_halfspace": "halfspace"}
+REFERENCE_OF = {
+    "floor": "dense",
+    "oracle": "dense",
+    "qpax": "dense",
+    "qpax_halfspace": "halfspace",
+    "clip": "clip",
+    "dense": "dense",
+    "halfspace": "halfspace",
+    "BoxCDQP": "dense",
+    "BoxOSQP": "dense",
+    "BoxOSQP_halfspace": "halfspace",
+}
 
 
 def two_row_figures(reps=10):
@@ -213,16 +234,27 @@ def main():
             err = float(np.max(np.abs(np.asarray(x, np.float64) - exact[REFERENCE_OF[name]])))
             bwd = jax.jit(jax.grad(lambda xd_, *rest, f=fns[name]: jnp.sum(f(xd_, *rest) * v)))
             t_b, m_b, _ = timeit(bwd, *a32, reps=reps)
-            results[f"{name}@{batch}"] = {"fwd_s": t_f, "fwd_bwd_s": t_b, "fwd_min_s": m_f, "fwd_bwd_min_s": m_b,
-                                          "max_err": err}
+            results[f"{name}@{batch}"] = {
+                "fwd_s": t_f,
+                "fwd_bwd_s": t_b,
+                "fwd_min_s": m_f,
+                "fwd_bwd_min_s": m_b,
+                "max_err": err,
+            }
             rows.append((batch, name, t_f, t_b, m_f, m_b, err))
-            print(f"{batch:>6} {name:<18} fwd {t_f * 1e3:10.3f} ms (min {m_f * 1e3:9.3f})   fwd+bwd {t_b * 1e3:10.3f} ms "
-                  f"(min {m_b * 1e3:9.3f})   max err {err:.2e}", flush=True)
+            print(
+                f"{batch:>6} {name:<18} fwd {t_f * 1e3:10.3f} ms (min {m_f * 1e3:9.3f})   fwd+bwd {t_b * 1e3:10.3f} ms "
+                f"(min {m_b * 1e3:9.3f})   max err {err:.2e}",
+                flush=True,
+            )
 
     for name, med, mn, conv, infeas in two_row_figures():
         results[f"{name}@4096"] = {"fwd_s": med, "fwd_min_s": mn, "converged": conv, "infeasible": infeas}
-        print(f"  4096 {name:<28} fwd {med * 1e3:8.2f} ms (min {mn * 1e3:8.2f})   converged {conv:.4f}   "
-              f"flagged infeasible {infeas}", flush=True)
+        print(
+            f"  4096 {name:<28} fwd {med * 1e3:8.2f} ms (min {mn * 1e3:8.2f})   converged {conv:.4f}   "
+            f"flagged infeasible {infeas}",
+            flush=True,
+        )
 
     ratios = {}
     for batch in batches:
@@ -251,16 +283,28 @@ def main():
                 ratios[f"{tag}qpax_halfspace_over_halfspace_fwd@{batch}"] = r("qpax_halfspace", "halfspace", "fwd")
             if f"BoxOSQP@{batch}" in results:
                 ratios[f"{tag}BoxOSQP_over_dense_fwd@{batch}"] = r("BoxOSQP", "dense", "fwd")
-                ratios[f"{tag}BoxOSQP_halfspace_over_halfspace_fwd@{batch}"] = r("BoxOSQP_halfspace", "halfspace", "fwd")
+                ratios[f"{tag}BoxOSQP_halfspace_over_halfspace_fwd@{batch}"] = r(
+                    "BoxOSQP_halfspace", "halfspace", "fwd"
+                )
 
     print()
-    print(f"{'batch':>6} {'method':<18} {'fwd [ms]':>10} {'(min)':>9} {'fwd+bwd [ms]':>13} {'(min)':>9} {'max err':>10}")
+    print(
+        f"{'batch':>6} {'method':<18} {'fwd [ms]':>10} {'(min)':>9} {'fwd+bwd [ms]':>13} {'(min)':>9} {'max err':>10}"
+    )
     for batch, name, t_f, t_b, m_f, m_b, err in rows:
-        print(f"{batch:>6} {name:<18} {t_f * 1e3:10.3f} {m_f * 1e3:9.3f} {t_b * 1e3:13.3f} {m_b * 1e3:9.3f} {err:10.2e}")
+        print(
+            f"{batch:>6} {name:<18} {t_f * 1e3:10.3f} {m_f * 1e3:9.3f} {t_b * 1e3:13.3f} {m_b * 1e3:9.3f} {err:10.2e}"
+        )
     for k, val in ratios.items():
         print(f"{k:<50} {val:10.2f}")
-    summary = {"n": N, "dtype": "float32", "device": jax.devices()[0].platform, "quick": args.quick,
-               "results": results, "ratios": ratios}
+    summary = {
+        "n": N,
+        "dtype": "float32",
+        "device": jax.devices()[0].platform,
+        "quick": args.quick,
+        "results": results,
+        "ratios": ratios,
+    }
     print("JSON " + json.dumps(summary, allow_nan=True))
 
 

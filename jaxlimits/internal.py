@@ -5,6 +5,7 @@ Not part of the public API: names here may change without notice. Everything a u
 ``jaxlimits._src`` directly.
 """
 
+from jaxlimits._src.qp_linalg import chol_solve, masked_matrix
 from jaxlimits._src.tracing import is_traced
 
-__all__ = ["is_traced"]
+__all__ = ["chol_solve", "is_traced", "masked_matrix"]

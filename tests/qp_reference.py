@@ -121,8 +121,8 @@ def rows_feasible(lower, upper, G, h):
 
     G = np.asarray(G, np.float64)
     n = G.shape[1]
-    res = linprog(np.zeros(n), A_ub=G, b_ub=h, bounds=list(zip(np.broadcast_to(lower, (n,)), np.broadcast_to(upper, (n,)))),
-                  method="highs")
+    bounds = list(zip(np.broadcast_to(lower, (n,)), np.broadcast_to(upper, (n,))))
+    res = linprog(np.zeros(n), A_ub=G, b_ub=h, bounds=bounds, method="highs")
     return res.status == 0
 
 

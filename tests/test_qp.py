@@ -109,8 +109,11 @@ def test_straight_through_keeps_the_value_and_passes_the_gradient(dtype):
 def test_dense_metric_matches_reference_float64(x64, n, per_kind):
     """4 kinds x 3 condition numbers (1e2, 1e4, 1e6) in one batch: 1800 problems (n=3), 300 (n=7)."""
     rng = np.random.default_rng(n)
-    parts = [_problems(rng, per_kind, n, cond, kind) for kind in ("random", "none_active", "all_active", "ties")
-             for cond in (1e2, 1e4, 1e6)]
+    parts = [
+        _problems(rng, per_kind, n, cond, kind)
+        for kind in ("random", "none_active", "all_active", "ties")
+        for cond in (1e2, 1e4, 1e6)
+    ]
     xd, lo, hi, W = (np.concatenate(p) for p in zip(*parts))
     res = jl.solve_box_qp(xd, lo, hi, W)
     assert bool(jnp.all(res.converged))
@@ -227,7 +230,7 @@ def test_contradicting_rows_float32_and_gradients():
 
     def loss(x, hh):  # one compiled program for the values and the gradients
         res = jl.solve_box_qp(x, lo, hi, W, G=G, h=hh)
-        return jnp.sum(res.x ** 2), res
+        return jnp.sum(res.x**2), res
 
     (_, res), grads = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(xd, h)
     _assert_in_box(res.x, lo, hi)
@@ -300,6 +303,33 @@ def test_implicit_gradients_through_the_least_violation(x64):
     assert checked == 3
 
 
+def test_implicit_jacobian_matches_the_closed_form_on_a_batch(x64):
+    """A batch large enough for the fast path's cascade (n = 5, 600 problems, no rows): forward and
+    reverse mode vs ``dx_F / dx_des = [I, W_FF^-1 W_FA]`` and ``dx_A / dx_des = 0`` of each problem's
+    active set, on the problems whose active set is stable (margins > 1e-6)."""
+    rng = np.random.default_rng(12)
+    xd, lo, hi, W = _problems(rng, 600, 5, 1e2)
+    x = np.asarray(jl.project_box(xd, lo, hi, W))
+    u, t = rng.normal(size=xd.shape), rng.normal(size=xd.shape)
+    jtu = np.asarray(jax.grad(lambda a: jnp.sum(jl.project_box(a, lo, hi, W) * u))(xd))
+    jt = np.asarray(jax.jvp(lambda a: jl.project_box(a, lo, hi, W), (xd,), (t,))[1])
+    checked = 0
+    for i in range(len(xd)):
+        g = W[i] @ (x[i] - xd[i])
+        held = (x[i] == lo[i]) | (x[i] == hi[i])
+        margin = np.minimum(x[i] - lo[i], hi[i] - x[i])
+        if np.any(held & (np.abs(g) < 1e-6)) or np.any(~held & (margin < 1e-6)):
+            continue
+        F, A = np.flatnonzero(~held), np.flatnonzero(held)
+        J = np.zeros((5, 5))
+        J[F, F] = 1.0
+        J[np.ix_(F, A)] = np.linalg.solve(W[i][np.ix_(F, F)], W[i][np.ix_(F, A)]) if len(F) else 0.0
+        np.testing.assert_allclose(jt[i], J @ t[i], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(jtu[i], J.T @ u[i], rtol=1e-9, atol=1e-9)
+        checked += 1
+    assert checked >= 0.9 * len(xd)
+
+
 def test_gradients_are_finite_at_ties_and_degenerate_problems(dtype):
     rng = np.random.default_rng(9)
     xd, lo, hi, W = (a.astype(dtype) for a in _problems(rng, 64, 3, 1e3, "ties"))
@@ -336,6 +366,45 @@ def test_jit_eager_vmap_agree_and_broadcast(dtype):
     assert res.converged.shape == (3, 4) and res.iterations.dtype == jnp.int32
 
 
+def test_batches_larger_than_a_block_match_reference_and_the_unblocked_answer(x64):
+    """More than ``qp_pdas.BLOCK`` problems run block by block (the last block filled with copies):
+    every answer matches the enumeration and the answer of the same problems solved in a small batch."""
+    from jaxlimits._src.qp_pdas import BLOCK
+
+    rng = np.random.default_rng(13)
+    B = 2 * BLOCK + 5
+    xd, lo, hi, W = _problems(rng, B, 3, 1e3)
+    res = jl.solve_box_qp(xd, lo, hi, W)
+    assert bool(jnp.all(res.converged))
+    _assert_in_box(res.x, lo, hi)
+    assert _max_error(res, xd, lo, hi, W) <= 1e-8
+    tail = slice(B - 40, B)  # the last, padded block
+    small = jl.project_box(xd[tail], lo[tail], hi[tail], W[tail])
+    np.testing.assert_allclose(res.x[tail], small, rtol=0, atol=1e-12)
+    g = jax.grad(lambda a: jnp.sum(jl.project_box(a, lo, hi, W) ** 2))(xd)
+    g_small = jax.grad(lambda a: jnp.sum(jl.project_box(a, lo[tail], hi[tail], W[tail]) ** 2))(xd[tail])
+    np.testing.assert_allclose(g[tail], g_small, rtol=0, atol=1e-10)
+
+
+def test_vmap_of_the_derivatives_matches_a_loop(x64):
+    """``vmap`` of ``grad`` and of ``jvp`` (the implicit derivative under an outer batch)."""
+    rng = np.random.default_rng(15)
+    A = rng.normal(size=(3, 5, 4, 4))
+    W = A @ np.swapaxes(A, -1, -2) + np.eye(4)
+    xd, G, h = 2.0 * rng.normal(size=(3, 5, 4)), rng.normal(size=(3, 5, 1, 4)), rng.uniform(size=(3, 5, 1))
+
+    def f(x, w, g, hh):
+        return jnp.sum(jl.project_box(x, -1.0, 1.0, w, G=g, h=hh) ** 2)
+
+    grads = jax.vmap(jax.grad(f, argnums=(0, 1, 2, 3)))(xd, W, G, h)
+    tangents = jax.vmap(lambda x, t, w: jax.jvp(lambda y: jl.project_box(y, -1.0, 1.0, w), (x,), (t,))[1])(xd, xd, W)
+    for i in range(3):
+        for got, want in zip(grads, jax.grad(f, argnums=(0, 1, 2, 3))(xd[i], W[i], G[i], h[i])):
+            np.testing.assert_allclose(got[i], want, rtol=1e-12, atol=1e-12)
+        want = jax.jvp(lambda y: jl.project_box(y, -1.0, 1.0, W[i]), (xd[i],), (xd[i],))[1]
+        np.testing.assert_allclose(tangents[i], want, rtol=1e-12, atol=1e-12)
+
+
 # ------------------------------------------------------------------------------------------ errors
 
 
@@ -350,7 +419,11 @@ def test_jit_eager_vmap_agree_and_broadcast(dtype):
         ((np.zeros(3), -1.0, 1.0, np.array([1.0, 0.0, 1.0])), {}, r"diagonal metric must be > 0"),
         ((np.zeros(3), -1.0, 1.0, np.eye(2)), {}, r"dense metric must have shape"),
         ((np.zeros(3), -1.0, 1.0), {"G": np.ones((1, 3))}, r"G and h go together"),
-        ((np.zeros(3), -1.0, 1.0), {"G": np.ones((2, 3)), "h": np.ones(3)}, r"h must have shape \(\.\.\., m\) with m=2"),
+        (
+            (np.zeros(3), -1.0, 1.0),
+            {"G": np.ones((2, 3)), "h": np.ones(3)},
+            r"h must have shape \(\.\.\., m\) with m=2",
+        ),
         ((np.zeros(3), -1.0, 1.0), {"G": np.ones((2, 4)), "h": np.ones(2)}, r"G must have shape"),
         ((np.zeros(3), -1.0, 1.0), {"G": np.full((1, 3), np.nan), "h": np.ones(1)}, r"G must be finite"),
         ((np.zeros(3), -1.0, 1.0), {"gradient": "smooth"}, r"gradient must be one of"),
@@ -394,10 +467,28 @@ def _redundant_rows(rng, batch):
     h0 = gmin + rng.uniform(-0.05, 0.6, size=(batch, 3)) * spread
     c = rng.uniform(0.3, 3.0, size=(batch, 1))
     far = rng.uniform(1e3, 1e4, size=(batch, 3))
-    G = np.concatenate([G0, G0[:, :1], c[:, :, None] * G0[:, 1:2], -G0[:, :1], G0[:, 2:3],
-                        np.where(act[:, None], rng.normal(size=(batch, 1, n)), 0.0), -G0[:, 1:2]], 1)
-    h = np.concatenate([h0, h0[:, :1], c * (h0[:, 1:2] + rng.uniform(-0.1, 0.5, size=(batch, 1)) * spread[:, 1:2]),
-                        -h0[:, :1] + rng.uniform(-0.2, 1.0, size=(batch, 1)) * spread[:, :1], far], 1)
+    G = np.concatenate(
+        [
+            G0,
+            G0[:, :1],
+            c[:, :, None] * G0[:, 1:2],
+            -G0[:, :1],
+            G0[:, 2:3],
+            np.where(act[:, None], rng.normal(size=(batch, 1, n)), 0.0),
+            -G0[:, 1:2],
+        ],
+        1,
+    )
+    h = np.concatenate(
+        [
+            h0,
+            h0[:, :1],
+            c * (h0[:, 1:2] + rng.uniform(-0.1, 0.5, size=(batch, 1)) * spread[:, 1:2]),
+            -h0[:, :1] + rng.uniform(-0.2, 1.0, size=(batch, 1)) * spread[:, :1],
+            far,
+        ],
+        1,
+    )
     return xd, lo, hi, W, G, h, k
 
 
@@ -435,7 +526,8 @@ def test_redundant_parallel_and_far_rows_match_reference(x64):
         if not feasible[i]:
             r, _ = ref.least_violation(lo[i, s], hi[i, s], G[i, :, s], h[i])
             np.testing.assert_allclose(np.maximum(G[i] @ x[i] - h[i], 0.0), r, atol=1e-9)
-        Ge, he = _essential_rows(lo[i, s], hi[i, s], G[i, :, s], h[i] + r + (0 if feasible[i] else 1e-11 * (1 + np.abs(h[i]))))
+        slack = 0 if feasible[i] else 1e-11 * (1 + np.abs(h[i]))
+        Ge, he = _essential_rows(lo[i, s], hi[i, s], G[i, :, s], h[i] + r + slack)
         xr = ref.solve(xd[i, s], lo[i, s], hi[i, s], W[i, s, s], Ge, he)
         err = np.max(np.abs(x[i, s] - xr)) / (1.0 + np.max(np.abs(xr)))
         assert not conv[i] or err <= (1e-8 if feasible[i] else 1e-6), (i, err)

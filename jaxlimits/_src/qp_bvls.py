@@ -13,15 +13,17 @@ if that solution leaves the box. It terminates finitely (in exact arithmetic) at
 row whose ``t`` is free is met exactly (``t_j = G_j x - h_j``), so it is eliminated: the normal
 equations (masked Cholesky) hold only the rows with ``t`` held, and tolerances are per row
 (``row_scale``). (Solving for ``(x, t)`` together let the rounding of far-away rows, huge ``h_j``,
-leak into the residual of the near ones: a feasible problem then looked infeasible.) The residual ``r*`` is unique even when the
-minimiser is not (strict convexity of the squared norm in ``r``), so the set of least violation
-is ``{x in box : G x <= h + r*}``.
+leak into the residual of the near ones: a feasible problem then looked infeasible.) The residual
+``r*`` is unique even when the minimiser is not (strict convexity of the squared norm in ``r``), so
+the set of least violation is ``{x in box : G x <= h + r*}``.
 
 Array form, one problem (the caller vmaps). Only problems that the fast path could not settle go
 through here.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -92,6 +94,18 @@ def certificate(lower, upper, G, h, r):
     return gap, err
 
 
+class _Split(NamedTuple):
+    """BVLS's loop state for ``z = (x, t)``: z ``(n + m,)`` the point; free, at_u ``(n + m,)`` bool,
+    the variables free / held at their upper bound (else at their lower one); it ``()`` int32;
+    done ``()`` bool."""
+
+    z: jax.Array
+    free: jax.Array
+    at_u: jax.Array
+    it: jax.Array
+    done: jax.Array
+
+
 def bvls(lower, upper, G, h, max_iter):
     """BVLS for one problem. Returns ``(free, at_u, z, done)``: the final split of ``(x, t)`` and point."""
     m, n = G.shape
@@ -108,8 +122,8 @@ def bvls(lower, upper, G, h, max_iter):
     z0 = jnp.where(at_u0, zu, zl)
     inf = jnp.asarray(jnp.inf, dt)
 
-    def body(state):
-        z, free, at_u, it, _ = state
+    def body(c: _Split) -> _Split:
+        z, free, at_u = c.z, c.free, c.at_u
         free_x, held_t = free[:n], ~free[n:]
         x = _ls(G, h, free_x, held_t, z[:n])
         y = jnp.concatenate([x, jnp.where(held_t, z[n:], G @ x - h)])
@@ -140,11 +154,10 @@ def bvls(lower, upper, G, h, max_iter):
         free_new = jnp.where(blocked, free & ~onek, free | (onej & any_c))
         at_u_new = jnp.where(blocked & onek, hit_u, at_u)
         done = ~blocked & ~any_c
-        return z_new, free_new, at_u_new, it + 1, done
+        return _Split(z_new, free_new, at_u_new, c.it + 1, done)
 
-    def cond(state):
-        return (state[3] < max_iter) & ~state[4]
+    def cond(c: _Split):
+        return (c.it < max_iter) & ~c.done
 
-    init = (z0, jnp.zeros((n + m,), bool), at_u0, jnp.int32(0), jnp.bool_(False))
-    z, free, at_u, _, done = jax.lax.while_loop(cond, body, init)
-    return free, at_u, z, done
+    out = jax.lax.while_loop(cond, body, _Split(z0, jnp.zeros((n + m,), bool), at_u0, jnp.int32(0), jnp.bool_(False)))
+    return out.free, out.at_u, out.z, out.done

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -56,7 +55,8 @@ def check_inputs(x_des, lower, upper, metric, G, h):
         jnp.broadcast_shapes(x0.shape, out["lower"].shape, out["upper"].shape)
     except ValueError as exc:
         raise ValueError(
-            f"project_box: shapes do not broadcast: x_des {x0.shape}, lower {out['lower'].shape}, upper {out['upper'].shape}"
+            f"project_box: shapes do not broadcast: x_des {x0.shape}, lower {out['lower'].shape}, "
+            f"upper {out['upper'].shape}"
         ) from exc
     lo, hi = concrete(out["lower"]), concrete(out["upper"])
     if lo is not None and hi is not None:
@@ -65,7 +65,8 @@ def check_inputs(x_des, lower, upper, metric, G, h):
         if np.any(bad):
             idx = np.argwhere(bad)[:5].tolist()
             raise ValueError(
-                f"project_box: need lower <= upper, got lower={lo_b[bad][:5].tolist()} > upper={hi_b[bad][:5].tolist()} at {idx}"
+                f"project_box: need lower <= upper, got lower={lo_b[bad][:5].tolist()} > "
+                f"upper={hi_b[bad][:5].tolist()} at {idx}"
             )
 
     W = _array("metric", metric)
@@ -101,7 +102,8 @@ def check_inputs(x_des, lower, upper, metric, G, h):
             raise ValueError(f"project_box: metric must be None, (n,) or (..., n, n), got shape {W.shape}")
 
     if (G is None) != (h is None):
-        raise ValueError(f"project_box: G and h go together, got G={'None' if G is None else 'an array'} and h={'None' if h is None else 'an array'}")
+        got = f"G={'None' if G is None else 'an array'} and h={'None' if h is None else 'an array'}"
+        raise ValueError(f"project_box: G and h go together, got {got}")
     if G is not None:
         G = _array("G", G).astype(dtype)
         h = _array("h", h).astype(dtype)
