@@ -226,7 +226,8 @@ def test_states_on_each_models_own_curve_are_safe_and_tight(name, v_frac, rel, k
         assert violates_under_full_braking(q, v, lower - eps, name), (name, q, v, lower)
     # on the zoh curve, moving toward the limit, only full braking is left on that side (the semi-implicit D is
     # flat below v = h a_max and piecewise linear: less braking can still stop in time there)
-    if rel == 0.0 and v != 0.0 and integrator == "zoh":
+    # (not where v^2 underflows: then the curve is q on the limit itself and any a ~ -v/T keeps it, to rounding)
+    if rel == 0.0 and v * v > 1e-300 and integrator == "zoh":
         assert (upper if upper_side else -lower) <= -lim.a_max + 1e-9 * lim.a_max, (upper, lower)
 
 

@@ -21,7 +21,7 @@ for 84 %, after three for 92 %, so most problems settle in the first iteration.
 
 The batch (``solve``): the problems are taken ``BLOCK`` at a time (``jax.lax.map``), each block
 transposed to the batch-last layout of ``qp_linalg``, so that a block's arrays stay in the CPU's
-caches through its iterations (at batch 65536 this made the fast path 3x faster than iterating the
+caches through its iterations (at batch 65536 this made the solve 2-3x faster than iterating the
 whole batch at once). A block iterates while more than an eighth of it is unsettled (usually only
 the first iteration); the unsettled problems are then gathered into a batch an eighth of the size,
 which iterates while more than an eighth of it is unsettled, and so on down to ~64 problems, the
