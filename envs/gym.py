@@ -298,4 +298,6 @@ def register_envs():
 
 register_envs()
 
-__all__ = ["ArmEnv", "ArmVectorEnv", "register_envs"]
+__all__ = ["ArmEnv", "ArmVectorEnv", "JointLimitShieldWrapper", "register_envs"]
+
+from jaxlimits.envs.gym_shield import JointLimitShieldWrapper  # noqa: E402

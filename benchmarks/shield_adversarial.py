@@ -1,0 +1,81 @@
+"""Adversarial campaign of ``JointLimitShield`` on third-party Brax envs and the shipped servo arms.
+
+For each env (Brax ``pusher`` and ``reacher`` on MJX, the shipped position-servo Panda and UR5e
+``Reach``) and shield (viability, jerk where the MJCF has j_max, and ``none`` = unshielded through
+the same code), ``shield_rollout`` runs the adversarial policies (targets/torques at the upper
+bounds, lower bounds, bang-bang, random) and counts violations at every physics substep. Prints a
+table and one JSON line.
+
+    .venv/bin/python benchmarks/shield_adversarial.py [--batch 512] [--steps 200]
+"""
+
+import argparse
+import json
+import time
+import warnings
+
+import jaxlimits.envs  # noqa: F401  (XLA flags before jax)
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    import brax.envs
+
+from jaxlimits.envs import JointLimitShield
+from jaxlimits.envs.adversarial import inside_reset, shield_rollout
+from jaxlimits.envs.reach import make_servo_panda_reach, make_ur5e_reach
+
+ENVS = {
+    "brax pusher": (lambda: brax.envs.get_environment("pusher", backend="mjx"), dict(v_max=2.0)),
+    "brax reacher": (lambda: brax.envs.get_environment("reacher", backend="mjx"), dict(v_max=4.0)),
+    "servo Panda": (make_servo_panda_reach, {}),
+    "UR5e": (make_ur5e_reach, {}),
+}
+SHIELDS = {
+    "brax pusher": ("viability", "none"),
+    "brax reacher": ("viability", "none"),
+    "servo Panda": ("viability", "jerk", "none"),
+    "UR5e": ("viability", "none"),
+}
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--batch", type=int, default=512)
+    p.add_argument("--steps", type=int, default=200)
+    args = p.parse_args()
+    rows = []
+    for name, (make, kw) in ENVS.items():
+        for method in SHIELDS[name]:
+            env = JointLimitShield(make(), method=method, **kw)
+            t = time.time()
+            r = shield_rollout(env, args.batch, args.steps, reset=inside_reset(env))
+            r.update(env=name, method=method, wall_s=round(time.time() - t, 1))
+            rows.append(r)
+            print(
+                f"{name:13s} {method:9s} steps {r['env_steps']:7d}  pos {r['count/position']:6d} (max {r['max/position']:.2e})"
+                f"  vel {r['count/velocity']:6d} (max {r['max/velocity']:.2e})  sat {r['count/saturated']:6d}"
+                f"  disturbed {r['count/disturbance']:6d}  undisturbed pos/vel {r['undisturbed/count/position']}/"
+                f"{r['undisturbed/count/velocity']}  accel err (undisturbed) {r['undisturbed/max/accel_error']:.2e}"
+                f"  {r['wall_s']} s",
+                flush=True,
+            )
+    keep = ("env", "method", "env_steps", "wall_s")
+    print(
+        json.dumps(
+            [
+                {
+                    k: v
+                    for k, v in r.items()
+                    if k in keep
+                    or "/" not in k
+                    or k.count("/") <= 2
+                    and not k.startswith(("upper", "lower", "bang", "random"))
+                }
+                for r in rows
+            ]
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,227 @@
+"""Realise a joint acceleration through a model's own actuators, one physics substep at a time.
+
+At a substep's state the integrator solves ``M_eff qacc = qfrc_smooth + qfrc_constraint`` with
+``M_eff = M + h D`` (``Robot.implicit_damping``; ``D = 0`` for RK4) and advances
+``v+ = v + h qacc``, ``q+ = q + h v+``. Without constraint forces, the shielded dofs get exactly
+the acceleration ``a`` when their actuators apply
+
+    tau = [M_eff a_full - f_other]_s,    a_full = (a on the shielded dofs s, a_u on the others u),
+    a_u = M_eff,uu^-1 (f_other,u - M_eff,us a)      (only when the chains couple them),
+
+where ``f_other`` is ``qfrc_smooth`` without the shielded actuators' own forces (bias, gravity,
+passive forces, the other actuators, applied forces); for RK4 less ``K h v / 2``
+(``Robot.rk4_stiffness``: the springs' and servos' average change over the stages). The actuator force ``gear (gain ctrl + bias)``
+is affine in ``ctrl``, so ``ctrl = (tau / gear - bias) / gain``, then clamped to ``ctrlrange``,
+and MuJoCo clamps the force to ``forcerange``: a clamp is a *saturation*, counted with the torque
+the actuator lacked (``torque_excess`` [N m]). Contact and joint-limit constraint forces are not
+inverted (they depend on the acceleration): they act as a disturbance, measured by the realised
+acceleration error.
+
+Two implementations of the same formula: ``MjxActuation`` (JAX, MJX data; for Brax) and
+``CActuation`` (NumPy over C MuJoCo's ``MjData``; for Gymnasium).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from jaxlimits.envs.robot import Robot
+
+
+class Inversion(NamedTuple):
+    """The actuator commands for one substep, ``(n,)`` each (``nu`` for ``ctrl_full``)."""
+
+    ctrl: jax.Array  # the shielded actuators' ctrl, clamped to ctrlrange
+    torque_excess: jax.Array  # [N m] |needed - deliverable| joint torque, 0 when not saturated
+    saturated: jax.Array  # bool
+
+
+TORQUE_BOX_MARGIN = 0.9  # room for M, h and the servos' bias changing over the step's substeps
+
+
+def torque_range(xp, robot_arrays, q, v):
+    """``(lo, hi)`` ``(n,)``: the joint torque each shielded actuator can apply at ``(q, v)`` [N m or N]
+    (``gear (gain ctrl + bias)`` over ``ctrlrange``, clamped to ``forcerange``)."""
+    _, _, gear, gain, bias, c_rng, f_rng = robot_arrays
+    b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
+    f_lo = xp.clip(gain * c_rng[:, 0] + b, f_rng[:, 0], f_rng[:, 1])
+    f_hi = xp.clip(gain * c_rng[:, 1] + b, f_rng[:, 0], f_rng[:, 1])
+    t1, t2 = gear * f_lo, gear * f_hi
+    return xp.minimum(t1, t2), xp.maximum(t1, t2)
+
+
+def torque_box(xp, M_ss, f_s, tau_lo, tau_hi, a_max):
+    """A box of joint accelerations every one of which the actuators can realise at the state (Alg. 4's
+    torque-to-acceleration step made exact for the coupled ``M``): ``a_c +- s a_max`` with ``a_c`` the
+    acceleration at the middle of the torque ranges, ``M_ss a_c = f_s + (tau_lo + tau_hi) / 2``, and
+    ``s = max(min_i r_i / sum_j |M_ij| a_max_j, 0)``, ``r`` the ranges' half widths (``a_max`` only shapes
+    the box). ``(lower, upper)``."""
+    c, r = (tau_lo + tau_hi) / 2, TORQUE_BOX_MARGIN * (tau_hi - tau_lo) / 2
+    a_c = xp.linalg.solve(M_ss, f_s + c)
+    s = xp.maximum(xp.min(r / (xp.abs(M_ss) @ a_max)), 0.0)  # not capped at 1: the limits' box caps it
+    return a_c - s * a_max, a_c + s * a_max
+
+
+def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool):
+    """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring."""
+    dofs, other, gear, gain, bias, c_rng, f_rng = robot_arrays
+    M_ss = M_eff[dofs[:, None], dofs[None, :]]
+    tau = M_ss @ a - f_other[dofs]
+    if coupled:
+        M_uu = M_eff[other[:, None], other[None, :]]
+        M_us = M_eff[other[:, None], dofs[None, :]]
+        M_su = M_eff[dofs[:, None], other[None, :]]
+        a_u = xp.linalg.solve(M_uu, f_other[other] - M_us @ a)
+        tau = tau + M_su @ a_u
+    b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
+    force_needed = tau / gear
+    ctrl_needed = (force_needed - b) / gain
+    ctrl = xp.clip(ctrl_needed, c_rng[:, 0], c_rng[:, 1])
+    force_free = gain * ctrl + b
+    force = xp.clip(force_free, f_rng[:, 0], f_rng[:, 1])
+    # saturated = a clamp is active (exact comparisons: the roundoff of gain * ctrl is not a saturation)
+    saturated = (ctrl != ctrl_needed) | (force != force_free)
+    excess = xp.where(saturated, xp.abs(gear * (force_needed - force)), 0.0)
+    return ctrl, excess, saturated
+
+
+class MjxActuation:
+    """The substep pieces of ``mjx.step`` with the shielded actuators' ``ctrl`` set between the velocity
+    and the actuation stages (Euler, implicitfast, RK4: the model's own integrator)."""
+
+    def __init__(self, robot: Robot, sys):
+        self.robot = robot
+        self.sys = sys
+        f32 = np.float32
+        self._arrays = (
+            np.asarray(robot.dof_adr),
+            np.asarray(robot.other_dofs),
+            robot.gear.astype(f32),
+            robot.gain.astype(f32),
+            robot.bias.astype(f32),
+            robot.ctrl_range.astype(f32),
+            robot.force_range.astype(f32),
+        )
+        self._damping = (robot.timestep * robot.implicit_damping).astype(f32)
+        self._stiff = (0.5 * robot.timestep * robot.rk4_stiffness).astype(f32)
+        self._act = np.asarray(robot.actuator_ids)
+        integ = int(sys.opt.integrator)
+        self._integrate = {
+            int(mujoco.mjtIntegrator.mjINT_EULER): mjx.euler,
+            int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST): mjx.implicit,
+            int(mujoco.mjtIntegrator.mjINT_RK4): mjx.rungekutta4,
+        }[integ]
+
+    def smooth_stage(self, d, ctrl):
+        """Positions, velocities, actuation and smooth acceleration at ``d``'s state with the env's ``ctrl``.
+
+        Returns ``(d, a_des, M_eff, f_other)``: ``a_des`` ``(n,)`` the acceleration ``ctrl`` asks of the
+        shielded joints under the integrator (``M_eff^-1 qfrc_smooth``), ``M_eff`` ``(nv, nv)``.
+        """
+        sys = self.sys
+        d = d.replace(ctrl=ctrl)
+        d = mjx.fwd_position(sys, d)
+        d = mjx.sensor_pos(sys, d)
+        d = mjx.fwd_velocity(sys, d)
+        d = mjx.sensor_vel(sys, d)
+        d = mjx.fwd_actuation(sys, d)
+        d = mjx.fwd_acceleration(sys, d)
+        M_eff = mjx.full_m(sys, d) + jnp.diag(jnp.asarray(self._damping, d.qvel.dtype))
+        dofs = self._arrays[0]
+        f_env = d.qfrc_smooth
+        f_other = f_env.at[dofs].add(-self._arrays[2] * d.actuator_force[self._act]) - self._stiff * d.qvel
+        a_des = jnp.linalg.solve(M_eff, f_env)[dofs]
+        return d, a_des, M_eff, f_other
+
+    def torque_box(self, d, M_eff, f_other, a_max):
+        """``(lower, upper)`` ``(n,)`` realisable accelerations at ``d``'s state (``torque_box``; uncoupled
+        chains: the unshielded dofs' accelerations do not enter)."""
+        dofs = self._arrays[0]
+        lo, hi = torque_range(jnp, self._arrays, d.qpos[self.robot.qpos_adr], d.qvel[dofs])
+        return torque_box(jnp, M_eff[dofs[:, None], dofs[None, :]], f_other[dofs], lo, hi, a_max)
+
+    def finish_substep(self, d, M_eff, f_other, a):
+        """Set the shielded ctrl realising ``a`` ``(n,)``, then actuation, constraints and the integrator.
+
+        Returns ``(d, inversion)``.
+        """
+        sys = self.sys
+        dofs = self._arrays[0]
+        inv = Inversion(
+            *_invert(
+                jnp, self._arrays, M_eff, f_other, a, d.qpos[self.robot.qpos_adr], d.qvel[dofs], self.robot.coupled
+            )
+        )
+        d = d.replace(ctrl=d.ctrl.at[self._act].set(inv.ctrl))
+        d = mjx.fwd_actuation(sys, d)
+        d = mjx.fwd_acceleration(sys, d)
+        # mjx.forward's own test for "no constraint rows" (a shape, static under jit)
+        if d._impl.efc_J.size == 0:
+            d = d.replace(qacc=d.qacc_smooth)
+        else:
+            d = mjx.solve(sys, d)
+            d = mjx.sensor_acc(sys, d)
+        return self._integrate(sys, d), inv
+
+
+class CActuation:
+    """The same substep over C MuJoCo (``mj_step1`` / ctrl / ``mj_step2``; RK4: a full ``mj_step``)."""
+
+    def __init__(self, robot: Robot, model: mujoco.MjModel):
+        self.robot = robot
+        self.model = model
+        self._arrays = (
+            np.asarray(robot.dof_adr),
+            np.asarray(robot.other_dofs),
+            robot.gear,
+            robot.gain,
+            robot.bias,
+            robot.ctrl_range,
+            robot.force_range,
+        )
+        self._damping = robot.timestep * robot.implicit_damping
+        self._stiff = 0.5 * robot.timestep * robot.rk4_stiffness
+        self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+        self._M = np.zeros((model.nv, model.nv))
+        self._act = np.asarray(robot.actuator_ids)
+        self._dofs = np.asarray(robot.dof_adr)
+        self._qadr = np.asarray(robot.qpos_adr)
+
+    def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray):
+        """As ``MjxActuation.smooth_stage`` (``d`` is changed in place); returns ``(a_des, M_eff, f_other)``."""
+        m = self.model
+        d.ctrl[:] = ctrl
+        if self._rk4:
+            mujoco.mj_fwdPosition(m, d)
+            mujoco.mj_fwdVelocity(m, d)
+        else:
+            mujoco.mj_step1(m, d)
+        mujoco.mj_fwdActuation(m, d)
+        mujoco.mj_fwdAcceleration(m, d)
+        mujoco.mj_fullM(m, d, self._M)
+        M_eff = self._M
+        M_eff[np.diag_indices_from(M_eff)] += self._damping
+        f_env = d.qfrc_smooth.copy()
+        f_other = f_env.copy()
+        f_other[self._dofs] -= self.robot.gear * d.actuator_force[self._act]
+        if self._rk4:
+            f_other -= self._stiff * d.qvel
+        a_des = np.linalg.solve(M_eff, f_env)[self._dofs]
+        return a_des, M_eff, f_other
+
+    def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a) -> Inversion:
+        ctrl, excess, sat = _invert(
+            np, self._arrays, M_eff, f_other, a, d.qpos[self._qadr], d.qvel[self._dofs], self.robot.coupled
+        )
+        d.ctrl[self._act] = ctrl
+        if self._rk4:
+            mujoco.mj_step(self.model, d)
+        else:
+            mujoco.mj_step2(self.model, d)
+        return Inversion(ctrl, excess, sat)

@@ -1,0 +1,239 @@
+"""``JointLimitShield``: the joint-limit shield around any Brax ``PipelineEnv`` on the MJX backend.
+
+    env = JointLimitShield(brax.envs.get_environment("pusher", backend="mjx"), v_max=2.0)
+
+What it takes over: the env's physics call. The wrapped env's own ``step`` runs unchanged (its
+action scaling, reward, observation, termination) up to ``self.pipeline_step(pipeline_state, ctrl)``;
+the shield replaces that method on the innermost env (an instance attribute shadowing
+``PipelineEnv.pipeline_step``) by ``_shielded_pipeline_step``, which:
+
+1. runs the first substep's position/velocity/actuation stages with the env's ``ctrl`` and reads the
+   joint acceleration that ``ctrl`` asks for (``MjxActuation.smooth_stage``: for a servo, its
+   acceleration at the step's start state);
+2. decides the safe acceleration (``SafeAcceleration``: the bounds of ``jl.acc_bounds`` for the
+   model's integrator and ``n_frames`` substeps, the projection, braking for a NaN/inf command);
+3. realises it at every substep through the model's actuators (``MjxActuation.finish_substep``: the
+   shielded actuators' ctrl is recomputed per substep from the substep's state, the others keep the
+   env's), then the model's own integrator; records the excess over the position/velocity limits and
+   the torque the actuators lacked (saturation) at every substep.
+
+The outputs of that call reach ``step`` through the trace (``_pending``/``_outputs``, set and read in
+the same call of ``step``): ``env.step`` must call ``pipeline_step`` once, outside any
+``lax.cond``/``scan`` of its own (every Brax env does; anything else raises).
+
+Per step: ``state.info["violation"] = {"position", "velocity", "torque"}`` (largest excess over the
+step's substeps [rad or m, rad/s or m/s, N m or N]) and ``state.metrics["shield/*"]``: the same three,
+``intervention`` (``max |a_safe - a_des|``), ``saturated``, ``nonfinite``, ``nonviable`` (0/1 per
+step), ``accel_error`` (``max |(v+ - v)/h - a_safe|`` over substeps and joints: contact forces,
+saturation and RK4's second-order error show here) and ``disturbance`` (largest constraint force [N m]
+on a shielded dof while inside its limits: a contact). The guarantee is exact for the model's own
+dynamics; a contact is outside it (its force depends on the acceleration, so it is not inverted): a
+trajectory the shield kept from every disturbance never violates (measured), one pushed by a contact
+can be pushed past a limit (counted; e.g. Brax ``pusher``'s hand striking its table).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from brax.base import Contact, Motion, Transform
+    from brax.envs.base import PipelineEnv, State, Wrapper
+
+from jaxlimits.envs.actuation import MjxActuation
+from jaxlimits.envs.arm import _mjx_broadcasting
+from jaxlimits.envs.joint_shield import SafeAcceleration
+from jaxlimits.envs.robot import Robot
+
+VIOLATIONS = ("position", "velocity", "torque")
+SHIELD_METRICS = VIOLATIONS + (
+    "intervention",
+    "saturated",
+    "nonfinite",
+    "nonviable",
+    "accel_error",
+    "disturbance",
+    "torque_conflict",
+)
+# fields a Brax env may have changed on its System after loading (read back into the MjModel copy)
+_SYNCED_FIELDS = (
+    "actuator_gear",
+    "actuator_gainprm",
+    "actuator_biasprm",
+    "actuator_ctrlrange",
+    "actuator_forcerange",
+    "jnt_range",
+    "dof_damping",
+    "dof_armature",
+)
+
+
+def _mj_model_of(sys):
+    """A copy of the ``MjModel`` a Brax ``System`` was built from, with the fields Brax envs edit on the
+    System (e.g. ``pusher``'s gear for other backends) read back from it."""
+    mjm = getattr(sys, "mj_model", None)
+    if mjm is None:
+        raise TypeError("the env's System has no mj_model (built without brax.io.mjcf?)")
+    mjm = mjm.__copy__()
+    for name in _SYNCED_FIELDS:
+        getattr(mjm, name)[:] = np.asarray(getattr(sys, name))
+    mjm.opt.timestep = float(sys.opt.timestep)
+    return mjm
+
+
+def _brax_state(sys, d):
+    """The Brax fields of the MJX pipeline state (as ``brax.mjx.pipeline.step`` computes them)."""
+    x = Transform(pos=d.xpos[1:], rot=d.xquat[1:])
+    cvel = Motion(vel=d.cvel[1:, 3:], ang=d.cvel[1:, :3])
+    offset = Transform.create(pos=d.xpos[1:, :] - d.subtree_com[sys.body_rootid[1:]])
+    xd = offset.vmap().do(cvel)
+    d = d.replace(q=d.qpos, qd=d.qvel, x=x, xd=xd)
+    impl = d._impl if hasattr(d, "_impl") else d
+    if impl.ncon > 0:
+        c = impl.contact
+        body1 = jnp.array(sys.geom_bodyid)[c.geom1] - 1
+        body2 = jnp.array(sys.geom_bodyid)[c.geom2] - 1
+        contact = Contact(link_idx=(body1, body2), elasticity=jnp.zeros(c.pos.shape[0]), **c.__dict__)
+        d = d.replace(contact=contact)
+    return d
+
+
+class JointLimitShield(Wrapper):
+    """Shield a Brax MJX ``PipelineEnv``'s joints; see the module docstring.
+
+    Args:
+      env: a Brax env (possibly wrapped) whose innermost env is a ``PipelineEnv`` with backend ``"mjx"``.
+      joints: names of the shielded joints (default: every hinge/slide joint an actuator drives).
+      v_max, a_max, j_max: limits, scalar or per joint (``Robot.from_model``: MJCF numerics, else
+        ``a_max`` torque-derived; ``v_max`` is required unless the MJCF has it).
+      method: ``"viability"``, ``"jerk"``, ``"naive"`` or ``"none"`` (``joint_shield.METHODS``).
+      gradient: derivative of the projection (``jl.project_box``): ``"exact"`` or ``"straight_through"``.
+      torque_box: also intersect the bounds with the accelerations the actuators can realise at the
+        step's start state (``actuation.torque_box``; conflicts: the limits win, counted in
+        ``shield/torque_conflict``). Without it, a command the actuators cannot deliver saturates them
+        and, through the coupling of ``M``, moves the other joints off their commands too.
+      robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
+
+    Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``.
+    """
+
+    def __init__(
+        self,
+        env,
+        joints=None,
+        v_max=None,
+        a_max=None,
+        j_max=None,
+        method: str = "viability",
+        gradient: str = "exact",
+        torque_box: bool = True,
+        **robot_kwargs,
+    ):
+        super().__init__(env)
+        self.torque_box = bool(torque_box) and method != "none"
+        base = env.unwrapped
+        if not isinstance(base, PipelineEnv) or getattr(base, "backend", None) != "mjx":
+            raise TypeError(
+                f"JointLimitShield wraps a Brax PipelineEnv on the mjx backend, got {type(base).__name__}"
+                f" (backend {getattr(base, 'backend', None)!r})"
+            )
+        if "_shielded_by" in base.__dict__:
+            raise ValueError("this env is already shielded (one JointLimitShield per env)")
+        self.robot = Robot.from_model(_mj_model_of(base.sys), joints, v_max, a_max, j_max, **robot_kwargs)
+        self.n_frames = int(base._n_frames)
+        self.decide = SafeAcceleration(self.robot, self.n_frames, method, gradient)
+        self.actuation = MjxActuation(self.robot, base.sys)
+        self.method = method
+        self._base = base
+        self._pending = None
+        self._outputs = None
+        base._shielded_by = self
+        base.pipeline_step = self._shielded_pipeline_step  # the one thing taken over
+
+    # ---- the physics call --------------------------------------------------------------------
+    @_mjx_broadcasting
+    def _shielded_pipeline_step(self, pipeline_state, ctrl):
+        if self._pending is None:
+            raise RuntimeError("pipeline_step of a shielded env was called outside JointLimitShield.step")
+        a_prev = self._pending
+        rob, act = self.robot, self.actuation
+        dofs, qadr = np.asarray(rob.dof_adr), np.asarray(rob.qpos_adr)
+        shielded = np.zeros(rob.nu, bool)
+        shielded[rob.actuator_ids] = True
+        finite = jnp.isfinite(ctrl)
+        ctrl_clean = jnp.where(finite, ctrl, 0.0)
+        nonfinite = ~jnp.all(finite)
+        h = jnp.float32(rob.timestep)
+
+        d, a_des, M, f = act.smooth_stage(pipeline_state, ctrl_clean)
+        a_des = jnp.where(nonfinite, jnp.nan, a_des)  # SafeAcceleration substitutes braking, and flags it
+        box = act.torque_box(d, M, f, jnp.asarray(rob.limits.a_max, jnp.float32)) if self.torque_box else None
+        dec = self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, box)
+        a = dec.a_safe
+
+        def record(d_before, d_after, inv):
+            v0, v1 = d_before.qvel[dofs], d_after.qvel[dofs]
+            viol = self.decide.violations(d_after.qpos[qadr], v1)
+            inside = self.decide.violations(d_before.qpos[qadr], v0)["position"] <= 0
+            return {
+                **viol,
+                # constraint force on the shielded dofs while they are inside their limits (MuJoCo's limit
+                # constraint is inactive there): a contact (or friction loss, equality) the shield does not model
+                "disturbance": jnp.where(inside, jnp.max(jnp.abs(d_after.qfrc_constraint[dofs])), 0.0),
+                "torque": jnp.max(inv.torque_excess),
+                "saturated": jnp.any(inv.saturated),
+                "accel_error": jnp.max(jnp.abs((v1 - v0) / h - a)),
+            }
+
+        d1, inv = act.finish_substep(d, M, f, a)
+        rec0 = record(d, d1, inv)
+
+        def substep(dd, _):
+            ds, _, Ms, fs = act.smooth_stage(dd, ctrl_clean)
+            dn, invs = act.finish_substep(ds, Ms, fs, a)
+            return dn, record(ds, dn, invs)
+
+        d_end, recs = jax.lax.scan(substep, d1, None, length=self.n_frames - 1)
+        rec = {k: jnp.max(jnp.concatenate([rec0[k][None], recs[k]])) for k in rec0}
+        finite_des = jnp.isfinite(a_des)
+        rec["intervention"] = jnp.max(jnp.where(finite_des, jnp.abs(a - jnp.where(finite_des, a_des, 0.0)), 0.0))
+        rec["nonfinite"] = dec.nonfinite | nonfinite
+        rec["nonviable"] = ~jnp.all(dec.viable)
+        rec["torque_conflict"] = dec.conflict
+        self._outputs = (rec, dec, a_des)
+        return _brax_state(self._base.sys, d_end)
+
+    # ---- Brax Env interface -------------------------------------------------------------------
+    @_mjx_broadcasting
+    def reset(self, rng: jax.Array) -> State:
+        state = self.env.reset(rng)
+        n = self.robot.n
+        zero = jnp.zeros((), jnp.float32)
+        info = dict(state.info)
+        info["shield_a_prev"] = jnp.zeros((n,), jnp.float32)
+        info["violation"] = {k: zero for k in VIOLATIONS}
+        metrics = dict(state.metrics)
+        metrics.update({f"shield/{k}": zero for k in SHIELD_METRICS})
+        return state.replace(info=info, metrics=metrics)
+
+    @_mjx_broadcasting
+    def step(self, state: State, action: jax.Array) -> State:
+        self._pending, self._outputs = state.info["shield_a_prev"], None
+        try:
+            nstate = self.env.step(state, action)
+            if self._outputs is None:
+                raise RuntimeError("the wrapped env's step did not call pipeline_step")
+            rec, dec, _ = self._outputs
+        finally:
+            self._pending = self._outputs = None
+        info = dict(nstate.info)
+        info["shield_a_prev"] = dec.a_safe.astype(jnp.float32)
+        info["violation"] = {k: rec[k].astype(jnp.float32) for k in VIOLATIONS}
+        metrics = dict(nstate.metrics)
+        metrics.update({f"shield/{k}": jnp.asarray(rec[k], jnp.float32) for k in SHIELD_METRICS})
+        return nstate.replace(info=info, metrics=metrics)

@@ -1,0 +1,336 @@
+"""``JointLimitShieldWrapper``: the joint-limit shield around any Gymnasium ``MujocoEnv`` (C MuJoCo).
+
+    env = JointLimitShieldWrapper(gymnasium.make("Pusher-v5"), v_max=2.0)
+    obs, info = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    info["violation"]  # {"position", "velocity", "torque"}: largest excess over the step's substeps
+    info["shield"]     # the decision: intervention, saturated, nonfinite, viable, accel_error, a_des, ...
+
+What it takes over: the env's physics call, and nothing else. ``MujocoEnv.step`` of every Gymnasium
+MuJoCo env calls ``self.do_simulation(ctrl, self.frame_skip)``, which writes ``ctrl`` into
+``data.ctrl`` and runs ``mj_step(model, data, nstep=n_frames)`` then ``mj_rnePostConstraint``. The
+wrapper sets the *instance* attribute ``env.unwrapped.do_simulation = self._do_simulation``
+(shadowing the class's method); the env's own ``step`` (its action handling, observation, reward,
+termination, rendering) runs unchanged around it. ``_do_simulation(ctrl, n_frames)``:
+
+1. cleans ``ctrl`` (``(nu,)``): an entry that MuJoCo would reject (NaN, inf or ``|x| > 1e10``,
+   MuJoCo's ``mju_isBad``; MuJoCo itself would then zero the *whole* ``ctrl`` with a warning) is set
+   to 0 and flagged ``nonfinite``; when it belongs to a shielded actuator the command for the shielded
+   joints is unknown, so ``a_des`` is set to NaN and ``SafeAcceleration`` substitutes braking;
+2. substep 0: runs the position/velocity/actuation stages with the env's ``ctrl`` and reads the joint
+   acceleration ``a_des`` ``(n,)`` [rad/s^2 or m/s^2] that ``ctrl`` asks of the shielded joints
+   (``CActuation.smooth_stage``; for a servo, its acceleration at the step's start state);
+3. decides the safe acceleration ``a_safe`` (``SafeAcceleration``: ``jl.acc_bounds`` for the
+   model's integrator over ``n_frames`` substeps, then the projection; one jitted, ahead-of-time
+   compiled XLA call per control step, float32, cached per ``n_frames``);
+4. realises ``a_safe``, *held* over the whole control step, at every substep through the model's own
+   actuators: the shielded actuators' ``ctrl`` is recomputed per substep from that substep's state
+   (``CActuation.finish_substep``; the other actuators keep the env's ``ctrl``), then the rest of the
+   substep incl. the model's own integrator runs; substeps 1..n-1 re-run ``smooth_stage`` with the
+   same env ``ctrl`` first (the state changed);
+5. records, at every substep's end, the excess over the model's own limits (``robot.limits``:
+   ``jnt_range`` for limited joints, unlimited joints have no position excess; ``v_max``), the torque
+   the actuators lacked (a clamp to ``ctrlrange``/``forcerange`` is a *saturation*) and the realised
+   acceleration error ``max |(v+ - v)/h - a_safe|``; finally ``mj_rnePostConstraint`` as Gymnasium does.
+
+After the call ``data.ctrl`` holds the last substep's ctrl of the shielded actuators (the env's for the
+others). The env also gets the attribute ``_shielded_by`` (one wrapper per env); nothing is restored on
+``close``.
+
+Contact and joint-limit constraint forces are not inverted (they depend on the acceleration): they act
+on the arm as a disturbance, visible in ``accel_error``; ``info["shield"]["constrained"]`` says whether
+a constraint force acted on a shielded dof in some substep. So the guarantee holds between contacts:
+a contact can push the state out of the viability kernel and the joint past its limit (Gymnasium's
+Pusher pressing on or striking its table; ``tests/test_gym_shield.py`` measures it). Euler and
+implicitfast realise ``a_safe`` exactly (to float64 roundoff) without constraint forces and
+saturation; RK4 holds ``ctrl`` over its four stages, so it realises the held acceleration only to
+second order in ``h`` (``robot.py``; ``SafeAcceleration`` tightens the limits for it by ``RK4_MARGIN``).
+
+Cost: the decision is one XLA call per control step (float32 numpy in, one packed array out); the
+substeps run NumPy and C MuJoCo from Python, several times the env's own ``mj_step``
+(``benchmarks/bench_gym_shield.py``).
+
+``method="none"`` is the unshielded baseline through the same code (the command as asked, only the
+NaN guard): it counts the violations the shield prevents.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from jaxlimits.envs.actuation import CActuation
+from jaxlimits.envs.joint_shield import SafeAcceleration
+from jaxlimits.envs.robot import Robot
+
+VIOLATIONS = ("position", "velocity", "torque")
+MJ_MAXVAL = 1e10  # MuJoCo's mjMAXVAL: mju_isBad(x) is NaN or |x| > mjMAXVAL
+_REQUIRED = ("model", "data", "do_simulation", "frame_skip")
+
+
+def _as_slice(idx):
+    """``idx`` as a ``slice`` when it is a contiguous ascending range (cheaper to index with), else an index array."""
+    idx = np.asarray(idx, np.intp)
+    if len(idx) and np.all(np.diff(idx) == 1):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
+def _zero_tally() -> dict:
+    return {
+        "steps": 0,
+        "position_violations": 0,
+        "velocity_violations": 0,
+        "torque_violations": 0,
+        "saturated": 0,
+        "nonfinite": 0,
+        "nonviable": 0,
+        "constrained": 0,
+        "max_position_excess": 0.0,
+        "max_velocity_excess": 0.0,
+        "max_torque_excess": 0.0,
+        "max_accel_error": 0.0,
+        "max_intervention": 0.0,
+    }
+
+
+class JointLimitShieldWrapper(gymnasium.Wrapper):
+    """Shield the joints of a Gymnasium ``MujocoEnv``; see the module docstring.
+
+    Args:
+      env: a Gymnasium env (possibly wrapped, e.g. by ``gymnasium.make``) whose ``unwrapped`` has
+        ``model`` (``mujoco.MjModel``), ``data``, ``do_simulation`` and ``frame_skip``.
+      joints: names of the shielded joints (default: every hinge/slide joint an actuator drives).
+      v_max, a_max, j_max: limits [rad/s, rad/s^2, rad/s^3 or m/...], scalar or per joint
+        (``Robot.from_model``: else the MJCF numerics, else ``a_max`` torque-derived; ``v_max`` is
+        required unless the MJCF has it).
+      method: ``"viability"``, ``"jerk"``, ``"naive"`` or ``"none"`` (``joint_shield.METHODS``).
+      robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
+
+    Attributes:
+      robot: the ``Robot`` (``n`` shielded joints). actuation: the ``CActuation``.
+      decide: the ``SafeAcceleration`` for ``frame_skip`` substeps.
+      a_prev: ``(n,)`` float32, the last step's ``a_safe`` (zeros after ``reset``; ``"jerk"`` uses it).
+      tally: running totals over the steps since construction (``reset_tally()`` zeroes them): counts
+        ``steps``, ``position_violations``, ``velocity_violations``, ``torque_violations`` (steps with
+        a positive excess), ``saturated``, ``nonfinite``, ``nonviable``, ``constrained`` (steps), and
+        the largest ``max_position_excess`` [rad or m], ``max_velocity_excess`` [rad/s or m/s],
+        ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2].
+
+    Raises ``TypeError`` for an env that is not a MuJoCo env, ``ValueError`` (from ``Robot.from_model``
+    / ``SafeAcceleration``) naming the joint, actuator or field that is missing or unsupported.
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env,
+        joints=None,
+        v_max=None,
+        a_max=None,
+        j_max=None,
+        method: str = "viability",
+        **robot_kwargs,
+    ):
+        super().__init__(env)
+        base = env.unwrapped
+        missing = [name for name in _REQUIRED if not hasattr(base, name)]
+        if missing or not isinstance(base.model, mujoco.MjModel) or not isinstance(base.data, mujoco.MjData):
+            raise TypeError(
+                "JointLimitShieldWrapper wraps a Gymnasium MujocoEnv (model: MjModel, data: MjData, do_simulation, "
+                f"frame_skip); got {type(base).__module__}.{type(base).__name__}"
+                + (f" without {missing}" if missing else " whose model/data are not MjModel/MjData")
+            )
+        if "_shielded_by" in vars(base):
+            raise ValueError("this env is already shielded (one JointLimitShieldWrapper per env)")
+        self.robot = rob = Robot.from_model(base.model, joints, v_max, a_max, j_max, **robot_kwargs)
+        self.actuation = CActuation(rob, base.model)
+        self.method = method
+        self._base = base
+        self._deciders = {}  # n_frames -> (SafeAcceleration, compiled XLA executable)
+        self.decide = self._decider(int(base.frame_skip))[0]  # validates and compiles eagerly
+        n = rob.n
+        self._n = n
+        self._nu = int(base.model.nu)
+        self._qadr = _as_slice(rob.qpos_adr)  # a slice when contiguous: views instead of fancy-index copies
+        self._dofs = _as_slice(rob.dof_adr)
+        self._shielded_act = np.zeros(self._nu, bool)
+        self._shielded_act[rob.actuator_ids] = True
+        lim = rob.limits
+        # the model's own limits; +-inf for unlimited joints: no position excess
+        self._q_lo = np.where(rob.limited, np.asarray(lim.q_min, np.float64), -np.inf)
+        self._q_hi = np.where(rob.limited, np.asarray(lim.q_max, np.float64), np.inf)
+        self._v_max = np.broadcast_to(np.asarray(lim.v_max, np.float64), (n,)).copy()
+        self._h = float(rob.timestep)
+        self.a_prev = np.zeros(n, np.float32)
+        self.tally = _zero_tally()
+        self._records = []
+        self._bufs = {}
+        base._shielded_by = self
+        base.do_simulation = self._do_simulation  # the one thing taken over (an instance attribute)
+
+    # ---- the decision ------------------------------------------------------------------------------
+    def _decider(self, n_frames: int):
+        """``(SafeAcceleration, compiled)`` for ``n_frames`` substeps (cached). ``compiled(q, v, a_des,
+        a_prev)`` takes four ``(n,)`` float32 arrays and returns one packed ``(4 n + 1,)`` float32 array
+        ``[a_safe, lower, upper, viable, nonfinite]`` (one device-to-host transfer)."""
+        hit = self._deciders.get(n_frames)
+        if hit is not None:
+            return hit
+        decide = SafeAcceleration(self.robot, n_frames, self.method)
+
+        def packed(q, v, a_des, a_prev):
+            dec = decide(q, v, a_des, a_prev)
+            f32 = jnp.float32
+            return jnp.concatenate(
+                [
+                    dec.a_safe.astype(f32),
+                    dec.lower.astype(f32),
+                    dec.upper.astype(f32),
+                    dec.viable.astype(f32),
+                    dec.nonfinite.astype(f32)[None],
+                ]
+            )
+
+        spec = jax.ShapeDtypeStruct((self.robot.n,), jnp.float32)
+        compiled = jax.jit(packed).lower(spec, spec, spec, spec).compile()
+        self._deciders[n_frames] = (decide, compiled)
+        return decide, compiled
+
+    # ---- the physics call --------------------------------------------------------------------------
+    def _do_simulation(self, ctrl, n_frames) -> None:
+        """Replaces ``MujocoEnv.do_simulation``: ``n_frames`` substeps with the shielded joints' acceleration
+        held at ``a_safe``; ``ctrl`` ``(nu,)`` the env's actuator commands. See the module docstring."""
+        base, act, n = self._base, self.actuation, self._n
+        m, d = base.model, base.data
+        ctrl = np.array(ctrl, dtype=np.float64)  # a copy: cleaned below
+        if ctrl.shape != (self._nu,):
+            raise ValueError(f"Action dimension mismatch. Expected {(self._nu,)}, found {ctrl.shape}")
+        n_frames = int(n_frames)
+        _, compiled = self._decider(n_frames)
+        bad = ~(np.abs(ctrl) <= MJ_MAXVAL)
+        bad_in = bool(bad.any())
+        shielded_bad = False
+        if bad_in:
+            shielded_bad = bool(bad[self._shielded_act].any())
+            ctrl[bad] = 0.0
+
+        dofs, qadr = self._dofs, self._qadr
+        Q, V, C, TE, S = self._buffers(n_frames)
+        a_des, M, f = act.smooth_stage(d, ctrl)
+        if shielded_bad:
+            a_des = np.full(n, np.nan)
+        out = compiled(
+            d.qpos[qadr].astype(np.float32), d.qvel[dofs].astype(np.float32), a_des.astype(np.float32), self.a_prev
+        )
+        out = np.asarray(out)
+        self.a_prev = out[:n]  # a fresh host array per call
+        a_safe = out[:n].astype(np.float64)
+
+        V[0] = d.qvel[dofs]
+        for k in range(n_frames):
+            if k:
+                _, M, f = act.smooth_stage(d, ctrl)
+            inv = act.finish_substep(d, M, f, a_safe)
+            Q[k] = d.qpos[qadr]
+            V[k + 1] = d.qvel[dofs]
+            C[k] = d.qfrc_constraint[dofs]
+            TE[k] = inv.torque_excess
+            S[k] = inv.saturated
+        mujoco.mj_rnePostConstraint(m, d)
+
+        # reductions over the substeps, once per call
+        pos = max(float(np.max(np.maximum(Q - self._q_hi, self._q_lo - Q))), 0.0)
+        vel = max(float(np.max(np.abs(V[1:]) - self._v_max)), 0.0)
+        accel_error = float(np.max(np.abs((V[1:] - V[:-1]) / self._h - a_safe)))
+        finite = np.isfinite(a_des)
+        if finite.all():
+            intervention = float(np.max(np.abs(a_safe - a_des)))
+        else:
+            intervention = float(np.max(np.abs(a_safe - a_des), where=finite, initial=0.0))
+        self._records.append(
+            {
+                "position": pos,
+                "velocity": vel,
+                "torque": float(TE.max()),
+                "intervention": intervention,
+                "saturated": bool(S.any()),
+                "nonfinite": bad_in or bool(out[4 * n] > 0.5),
+                "viable": bool(np.all(out[3 * n : 4 * n] > 0.5)),
+                "constrained": bool(np.any(C != 0.0)),
+                "accel_error": accel_error,
+                "a_des": a_des,
+                "a_safe": a_safe,
+                "lower": out[n : 2 * n].astype(np.float64),
+                "upper": out[2 * n : 3 * n].astype(np.float64),
+            }
+        )
+
+    def _buffers(self, n_frames: int):
+        """Per-substep records, reused (cached per ``n_frames``): positions ``Q (n_frames, n)``, velocities
+        ``V (n_frames + 1, n)`` (``V[0]`` the step's start), the constraint force on the shielded dofs
+        ``C``, torque excess ``TE`` and saturation ``S`` ``(n_frames, n)``."""
+        buf = self._bufs.get(n_frames)
+        if buf is None:
+            n = self._n
+            e = np.empty
+            buf = self._bufs[n_frames] = (
+                e((n_frames, n)),
+                e((n_frames + 1, n)),
+                e((n_frames, n)),
+                e((n_frames, n)),
+                e((n_frames, n), bool),
+            )
+        return buf
+
+    # ---- Gymnasium interface -----------------------------------------------------------------------
+    def reset(self, *, seed=None, options=None):
+        """``env.reset``; zeroes ``a_prev``."""
+        self.a_prev = np.zeros(self._n, np.float32)
+        self._records = []
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        """``env.step(action)`` with ``info["violation"]`` and ``info["shield"]`` added (module docstring).
+
+        ``info["violation"]``: ``{"position", "velocity", "torque"}`` -> float, the largest excess over the
+        step's substeps [rad or m, rad/s or m/s, N m or N], 0.0 when none. ``info["shield"]``:
+        ``intervention`` (``max |a_safe - a_des|`` over the finite entries [rad/s^2]), ``saturated``,
+        ``nonfinite``, ``viable``, ``constrained`` (bools; ``constrained``: a contact or limit force acted on a
+        shielded dof in some substep), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
+        [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
+        env's step runs the physics several times, the maxima/any over them (arrays: the last).
+        """
+        self._records = []
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        recs, self._records = self._records, []
+        if not recs:
+            raise RuntimeError("the wrapped env's step did not call do_simulation")
+        rec = dict(recs[-1])
+        for r in recs[:-1]:
+            for k in ("position", "velocity", "torque", "intervention", "accel_error"):
+                rec[k] = max(rec[k], r[k])
+            for k in ("saturated", "nonfinite", "constrained"):
+                rec[k] = rec[k] or r[k]
+            rec["viable"] = rec["viable"] and r["viable"]
+        info = dict(info)
+        info["violation"] = {k: rec[k] for k in VIOLATIONS}
+        info["shield"] = {k: v for k, v in rec.items() if k not in VIOLATIONS}
+        t = self.tally
+        t["steps"] += 1
+        for k in VIOLATIONS:
+            t[f"{k}_violations"] += rec[k] > 0.0
+            t[f"max_{k}_excess"] = max(t[f"max_{k}_excess"], rec[k])
+        t["saturated"] += rec["saturated"]
+        t["nonfinite"] += rec["nonfinite"]
+        t["nonviable"] += not rec["viable"]
+        t["constrained"] += rec["constrained"]
+        t["max_accel_error"] = max(t["max_accel_error"], rec["accel_error"])
+        t["max_intervention"] = max(t["max_intervention"], rec["intervention"])
+        return obs, reward, terminated, truncated, info
+
+    def reset_tally(self) -> None:
+        """Zero ``tally``."""
+        self.tally = _zero_tally()

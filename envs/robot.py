@@ -1,0 +1,499 @@
+"""A robot description read from any ``mujoco.MjModel``: the shielded joints, their limits and actuators.
+
+``Robot.from_model(mj_model, joints=None, v_max=..., a_max=None, j_max=None)`` picks the joints a
+shield protects (default: every hinge or slide joint that an actuator drives; free and ball joints,
+free objects and other bodies may exist elsewhere in the model) and reads, for each:
+
+- its ``qpos``/``qvel`` addresses;
+- its position limits from ``jnt_range`` when ``jnt_limited`` (an unlimited joint has none: the
+  shield keeps its velocity, acceleration and jerk limits only, see ``bound_positions``);
+- its actuator (exactly one per shielded joint) and that actuator's torque range;
+- ``v_max``/``a_max``/``j_max`` from the arguments (scalar or per joint), else from the MJCF custom
+  numerics ``jaxlimits_v_max``/``jaxlimits_a_max``/``jaxlimits_j_max``; without either, ``a_max`` is
+  derived from the actuators' torque (``torque_derived_a_max``, Del Prete's Alg. 4 made
+  conservative over sampled states), ``v_max`` is an error naming the joints.
+
+Supported actuators (anything else is an eager error naming the actuator): joint transmission
+(``trntype`` joint) on a hinge or slide joint, no activation dynamics (``dyntype`` none), fixed gain
+(``gaintype`` fixed, ``gain > 0``) and no or affine bias (``biastype`` none/affine). This covers
+``<motor>`` of any gear, ``<position>`` servos (kp, kv) and ``<general>`` with the matching
+gain/bias. The force such an actuator applies is ``gear (gain ctrl + b0 + b1 gear q + b2 gear v)``,
+with ``ctrl`` clamped to ``ctrlrange`` and the force in parentheses to ``forcerange`` (when limited),
+which is affine in ``ctrl``: ``actuation.py`` inverts it.
+
+Integrators: Euler and implicitfast (``integrator == "semi_implicit"`` for ``jl.acc_bounds``, exact:
+the implicit damping enters the effective mass ``M + h D``, see ``implicit_damping``) and RK4
+(``"zoh"``: RK4 integrates a constant acceleration exactly, but ``ctrl`` is held over its four stages,
+so the realised acceleration is constant only to first order; measured in the tests).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import mujoco
+import numpy as np
+
+import jaxlimits as jl
+
+_SHIELDABLE = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+_INTEGRATORS = {
+    int(mujoco.mjtIntegrator.mjINT_EULER): "semi_implicit",
+    int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST): "semi_implicit",
+    int(mujoco.mjtIntegrator.mjINT_RK4): "zoh",
+}
+# enum values as ints: comparing NumPy integer arrays with MuJoCo's enum objects is unreliable
+_TRN_JOINT = int(mujoco.mjtTrn.mjTRN_JOINT)
+_DYN_NONE = int(mujoco.mjtDyn.mjDYN_NONE)
+_GAIN_FIXED = int(mujoco.mjtGain.mjGAIN_FIXED)
+_BIAS_NONE = int(mujoco.mjtBias.mjBIAS_NONE)
+_BIAS_AFFINE = int(mujoco.mjtBias.mjBIAS_AFFINE)
+_QUANTILES = (0.0, 0.001, 0.01, 0.05)
+SUPPORTED_ACTUATORS = (
+    "joint transmission on a hinge/slide joint, dyntype none, gaintype fixed (gain > 0), biastype none or affine "
+    "(<motor>, <position>, <velocity>, <general> with fixed gain and affine bias)"
+)
+
+
+def _name(mjm, obj, i) -> str:
+    return mujoco.mj_id2name(mjm, obj, int(i)) or f"#{int(i)}"
+
+
+def _numeric(mjm: mujoco.MjModel, name: str, n: int) -> np.ndarray | None:
+    idx = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_NUMERIC, name)
+    if idx < 0:
+        return None
+    adr, size = mjm.numeric_adr[idx], mjm.numeric_size[idx]
+    out = np.array(mjm.numeric_data[adr : adr + size], dtype=np.float64)
+    if out.shape == (1,):
+        out = np.full(n, out[0])
+    return out
+
+
+def _per_joint(field: str, value, names) -> np.ndarray | None:
+    if value is None:
+        return None
+    arr = np.asarray(value, dtype=np.float64)
+    n = len(names)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{field} must be a scalar or have one value per shielded joint {list(names)}, got {value!r}")
+    bad = ~np.isfinite(arr) | (arr <= 0)
+    if np.any(bad):
+        raise ValueError(
+            f"{field} must be finite and > 0; got {dict((names[i], float(arr[i])) for i in np.flatnonzero(bad))}"
+        )
+    return arr
+
+
+def _select_joints(mjm: mujoco.MjModel, joints) -> tuple[np.ndarray, np.ndarray]:
+    """``(joint ids, actuator ids)`` of the shielded joints, in the order asked (default: joint order)."""
+    driven = {}
+    for a in range(mjm.nu):
+        if int(mjm.actuator_trntype[a]) == _TRN_JOINT:
+            driven.setdefault(int(mjm.actuator_trnid[a, 0]), []).append(a)
+    valid = [_name(mjm, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(mjm.njnt) if int(mjm.jnt_type[j]) in _SHIELDABLE]
+    if joints is None:
+        ids = [j for j in range(mjm.njnt) if int(mjm.jnt_type[j]) in _SHIELDABLE and j in driven]
+        if not ids:
+            raise ValueError(
+                f"no hinge or slide joint is driven by an actuator with a joint transmission; joints: {valid}"
+            )
+    else:
+        names = [joints] if isinstance(joints, str) else list(joints)
+        ids = []
+        for nm in names:
+            j = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_JOINT, nm)
+            if j < 0 or int(mjm.jnt_type[j]) not in _SHIELDABLE:
+                raise ValueError(
+                    f"unknown joint {nm!r} (not a hinge or slide joint of the model); valid joints: {valid}"
+                )
+            ids.append(j)
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"joints listed twice: {names}")
+    acts = []
+    for j in ids:
+        jn = _name(mjm, mujoco.mjtObj.mjOBJ_JOINT, j)
+        if j not in driven:
+            unsupported = [
+                _name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a)
+                for a in range(mjm.nu)
+                if int(mjm.actuator_trntype[a]) != _TRN_JOINT
+            ]
+            raise ValueError(
+                f"joint {jn!r} is driven by no actuator with a joint transmission"
+                + (f" (actuators with other transmissions are not supported: {unsupported})" if unsupported else "")
+                + f"; supported: {SUPPORTED_ACTUATORS}"
+            )
+        if len(driven[j]) > 1:
+            names_a = [_name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a) for a in driven[j]]
+            raise ValueError(f"joint {jn!r} is driven by several actuators {names_a}; the shield needs exactly one")
+        acts.append(driven[j][0])
+    return np.asarray(ids, np.int64), np.asarray(acts, np.int64)
+
+
+def _check_actuator(mjm: mujoco.MjModel, a: int) -> None:
+    an = _name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a)
+    problems = []
+    if int(mjm.actuator_dyntype[a]) != _DYN_NONE:
+        problems.append(f"dyntype {mujoco.mjtDyn(mjm.actuator_dyntype[a]).name}")
+    if int(mjm.actuator_gaintype[a]) != _GAIN_FIXED:
+        problems.append(f"gaintype {mujoco.mjtGain(mjm.actuator_gaintype[a]).name}")
+    elif not mjm.actuator_gainprm[a, 0] > 0:
+        problems.append(f"gain {mjm.actuator_gainprm[a, 0]} (must be > 0)")
+    if int(mjm.actuator_biastype[a]) not in (_BIAS_NONE, _BIAS_AFFINE):
+        problems.append(f"biastype {mujoco.mjtBias(mjm.actuator_biastype[a]).name}")
+    if mjm.actuator_gear[a, 0] == 0:
+        problems.append("gear 0")
+    if problems:
+        raise ValueError(
+            f"actuator {an!r} cannot be inverted by the shield ({', '.join(problems)}); supported: {SUPPORTED_ACTUATORS}"
+        )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Robot:
+    """The shielded joints of a MuJoCo model (NumPy, float64; ``n`` joints, ``nv`` model dofs).
+
+    Attributes:
+      names: joint names ``(n,)``; ``joint_ids``, ``qpos_adr``, ``dof_adr``, ``actuator_ids`` ``(n,)``.
+      limits: ``jl.JointLimits`` of the shielded joints (unlimited joints: see ``bound_positions``).
+      limited: ``(n,)`` bool, the joint has a position range.
+      gear, gain, bias: ``(n,)``, ``(n,)``, ``(n, 3)`` of each joint's actuator: force on the joint
+        ``gear (gain ctrl + b0 + b1 gear q + b2 gear v)``.
+      ctrl_range, force_range: ``(n, 2)`` (``±inf`` when not limited).
+      tau_max: ``(n,)`` joint torque [N m or N] the actuator can apply in the braking direction at the
+        worst sampled state (what ``torque_derived_a_max`` used; informative).
+      integrator: ``"semi_implicit"`` (Euler, implicitfast) or ``"zoh"`` (RK4), for ``jl.acc_bounds``.
+      timestep: the physics substep ``h`` [s].
+      implicit_damping: ``(nv,)`` the diagonal ``D`` the integrator treats implicitly: it solves
+        ``(M + h D) qacc = qfrc`` (Euler: ``dof_damping`` unless ``eulerdamp`` is disabled;
+        implicitfast: ``dof_damping`` plus ``gear^2 kv`` of every actuator with a velocity bias;
+        RK4: half of both, the first-order effect of damping over RK4's stages with ``ctrl`` held).
+      coupled: whether a shielded dof shares a kinematic chain with an unshielded one (then the
+        actuation solves for the unshielded accelerations too).
+      a_max_source: ``"argument"``, ``"numeric"`` or ``"torque"``.
+      rk4_stiffness: ``(nv,)`` for RK4 the diagonal stiffness ``K`` (joint springs and servo kp) whose force
+        changes by ``-K h v / 2`` on average over RK4's stages with ``ctrl`` held (first order; the
+        actuation adds it back); 0 for the other integrators.
+      brake_shortfall: ``(n,)`` fraction of the sampled states at which the actuator cannot brake the
+        joint at ``a_max`` with the others anywhere in their boxes (0 for a worst-case ``a_max``).
+    """
+
+    names: tuple
+    joint_ids: np.ndarray
+    qpos_adr: np.ndarray
+    dof_adr: np.ndarray
+    actuator_ids: np.ndarray
+    limits: jl.JointLimits
+    limited: np.ndarray
+    gear: np.ndarray
+    gain: np.ndarray
+    bias: np.ndarray
+    ctrl_range: np.ndarray
+    force_range: np.ndarray
+    tau_max: np.ndarray
+    integrator: str
+    timestep: float
+    implicit_damping: np.ndarray
+    coupled: bool
+    nv: int
+    nu: int
+    a_max_source: str
+    brake_shortfall: np.ndarray
+    rk4_stiffness: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    @property
+    def other_dofs(self) -> np.ndarray:
+        """The model's dofs that are not shielded, ``(nv - n,)``."""
+        return np.setdiff1d(np.arange(self.nv), self.dof_adr)
+
+    @classmethod
+    def from_model(
+        cls,
+        mj_model: mujoco.MjModel,
+        joints=None,
+        v_max=None,
+        a_max=None,
+        j_max=None,
+        torque_margin: float = 0.8,
+        torque_samples: int = 4096,
+        torque_quantile: float | None = None,
+        seed: int = 0,
+    ) -> "Robot":
+        """Read the robot from ``mj_model``; see the module docstring. Raises ``ValueError`` naming the
+        joint, actuator or field when something is missing or unsupported.
+
+        ``torque_margin`` (0, 1]: the torque-derived ``a_max`` is this fraction of the sampled braking
+        capacity; ``torque_quantile`` [0, 1): which sampled state sets it (0: the worst of
+        ``torque_samples``; default ``None``: the worst, unless the actuators cannot brake some joint at
+        some sampled state, then the first of 0.1 %, 1 %, 5 % that gives every joint a positive
+        ``a_max``, with a warning; see ``_braking_capacity``). Sampled, so an estimate, not a bound: the
+        shield counts every substep where an actuator saturates; pass ``a_max`` for your own.
+        """
+        mjm = mj_model
+        if int(mjm.opt.integrator) not in _INTEGRATORS:
+            raise ValueError(
+                f"integrator {mujoco.mjtIntegrator(mjm.opt.integrator).name} is not supported; Euler, implicitfast, RK4 are"
+            )
+        if not 0.0 < torque_margin <= 1.0:
+            raise ValueError(f"torque_margin must be in (0, 1], got {torque_margin!r}")
+        if torque_quantile is not None and not 0.0 <= torque_quantile < 1.0:
+            raise ValueError(f"torque_quantile must be None or in [0, 1), got {torque_quantile!r}")
+        if int(torque_samples) < 1:
+            raise ValueError(f"torque_samples must be >= 1, got {torque_samples!r}")
+        jids, aids = _select_joints(mjm, joints)
+        names = tuple(_name(mjm, mujoco.mjtObj.mjOBJ_JOINT, j) for j in jids)
+        for a in aids:
+            _check_actuator(mjm, int(a))
+        n = len(jids)
+        if np.any(mjm.jnt_actfrclimited[jids]):
+            bad = [names[i] for i in np.flatnonzero(mjm.jnt_actfrclimited[jids])]
+            raise ValueError(f"joints {bad} have actuatorfrcrange (a joint-level force clamp); not supported")
+        qadr = mjm.jnt_qposadr[jids].astype(np.int64)
+        dadr = mjm.jnt_dofadr[jids].astype(np.int64)
+        limited = mjm.jnt_limited[jids].astype(bool)
+        rng = mjm.jnt_range[jids].astype(np.float64)
+        q_min = np.where(limited, rng[:, 0], -1.0)  # placeholders for unlimited joints (see bound_positions)
+        q_max = np.where(limited, rng[:, 1], 1.0)
+        gear = mjm.actuator_gear[aids, 0].astype(np.float64)
+        gain = mjm.actuator_gainprm[aids, 0].astype(np.float64)
+        affine = mjm.actuator_biastype[aids] == _BIAS_AFFINE
+        bias = np.where(affine[:, None], mjm.actuator_biasprm[aids, :3], 0.0).astype(np.float64)
+        inf = np.inf
+        ctrl_range = np.where(
+            mjm.actuator_ctrllimited[aids, None].astype(bool), mjm.actuator_ctrlrange[aids], [-inf, inf]
+        )
+        force_range = np.where(
+            mjm.actuator_forcelimited[aids, None].astype(bool), mjm.actuator_forcerange[aids], [-inf, inf]
+        )
+        unbounded = ~np.isfinite(force_range).all(axis=1) & ~np.isfinite(ctrl_range).all(axis=1)
+        if np.any(unbounded):
+            raise ValueError(
+                "actuators "
+                f"{[_name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, aids[i]) for i in np.flatnonzero(unbounded)]} "
+                "have neither ctrlrange nor forcerange: their torque is unbounded, so no torque limit can be read"
+            )
+        v = _per_joint("v_max", v_max, names)
+        if v is None:
+            v = _numeric(mjm, "jaxlimits_v_max", n)
+        if v is None:
+            raise ValueError(
+                f"no velocity limit for joints {list(names)}: MJCF has no field for it; pass v_max= (scalar or per joint) "
+                "or add <numeric name='jaxlimits_v_max'>"
+            )
+        v = _per_joint("v_max", v, names)
+        j = _per_joint("j_max", j_max, names)
+        if j is None and _numeric(mjm, "jaxlimits_j_max", n) is not None:
+            j = _per_joint("j_max", _numeric(mjm, "jaxlimits_j_max", n), names)
+        damping = _implicit_damping(mjm)
+        coupled = _coupled(mjm, dadr)
+        partial = dict(
+            names=names,
+            joint_ids=jids,
+            qpos_adr=qadr,
+            dof_adr=dadr,
+            actuator_ids=aids,
+            limited=limited,
+            gear=gear,
+            gain=gain,
+            bias=bias,
+            ctrl_range=ctrl_range,
+            force_range=force_range,
+            integrator=_INTEGRATORS[int(mjm.opt.integrator)],
+            timestep=float(mjm.opt.timestep),
+            implicit_damping=damping,
+            rk4_stiffness=_rk4_stiffness(mjm),
+            coupled=coupled,
+            nv=int(mjm.nv),
+            nu=int(mjm.nu),
+        )
+        a = _per_joint("a_max", a_max, names)
+        source = "argument"
+        if a is None and _numeric(mjm, "jaxlimits_a_max", n) is not None:
+            a, source = _per_joint("a_max", _numeric(mjm, "jaxlimits_a_max", n), names), "numeric"
+        rng_np = np.random.default_rng(seed)
+        qs, vs = _sample_states(mjm, qadr, limited, q_min, q_max, v, torque_samples, rng_np)
+        for quantile in _QUANTILES if torque_quantile is None else (torque_quantile,):
+            s_brake, tau, shortfall = _braking_capacity(mjm, partial, qs, vs, quantile)
+            if a is not None or np.all(s_brake > 0):
+                break
+        if a is None and quantile > 0 and np.all(s_brake > 0) and torque_quantile is None:
+            warnings.warn(
+                f"the actuators cannot brake every joint at every sampled state within v_max; a_max is set by the "
+                f"{quantile:.1%} quantile of the sampled states (shortfall per joint {dict(zip(names, shortfall.round(4)))}); "
+                "saturation is counted. Pass a_max= or a lower v_max for a worst-case one.",
+                stacklevel=2,
+            )
+        if a is None:
+            if not np.all(s_brake > 0):
+                bad = {names[i]: float(s_brake[i]) for i in np.flatnonzero(~(s_brake > 0))}
+                raise ValueError(
+                    f"the actuators cannot brake joints {bad} [rad/s^2 available] at some sampled state within v_max; "
+                    "pass a_max= explicitly or lower v_max"
+                )
+            a, source = torque_margin * s_brake, "torque"
+        limits = jl.JointLimits(q_min, q_max, v, a, j)
+        return cls(limits=limits, tau_max=tau, a_max_source=source, brake_shortfall=shortfall, **partial)
+
+    def bound_positions(self, q, dt: float, limits: jl.JointLimits | None = None):
+        """``(q_eff, limits)`` for ``jl.acc_bounds``: an unlimited joint is put at 0 in a range ``±R`` so wide
+        (``R = 4 (v_max^2 / a_max + v_max dt + a_max dt^2) + 1``, beyond any stop) that its position
+        constraint can never be active: its bounds are those of its velocity/acceleration/jerk limits.
+        ``q`` (..., n) array (jnp or numpy); the limited joints are unchanged. ``limits``: the robot's by
+        default (a tightened copy may be passed)."""
+        lim = self.limits if limits is None else limits
+        if np.all(self.limited):
+            return q, lim
+        R = 4.0 * (lim.v_max**2 / lim.a_max + lim.v_max * dt + lim.a_max * dt**2) + 1.0
+        q_min = np.where(self.limited, lim.q_min, -R)
+        q_max = np.where(self.limited, lim.q_max, R)
+        return q * self.limited.astype(np.float32), lim.replace(q_min=q_min, q_max=q_max)
+
+
+def _implicit_damping(mjm: mujoco.MjModel) -> np.ndarray:
+    integ = int(mjm.opt.integrator)
+    off = int(mjm.opt.disableflags)
+    D = np.zeros(mjm.nv)
+    if integ == int(mujoco.mjtIntegrator.mjINT_EULER):
+        if not off & int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP) and not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
+            D += mjm.dof_damping
+    elif integ == int(mujoco.mjtIntegrator.mjINT_RK4):
+        # RK4 holds ctrl over its four stages, so linear damping lowers the stages' accelerations by
+        # D h a / 2 on average (first order): compensated here, the rest is second order (measured)
+        if not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
+            D += 0.5 * mjm.dof_damping
+        D += 0.5 * _servo_damping(mjm)
+    elif integ == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST):
+        if not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
+            D += mjm.dof_damping
+            if mjm.ntendon and np.any(mjm.tendon_damping != 0):
+                raise ValueError("implicitfast with tendon damping is not supported (its derivative couples dofs)")
+        D += _servo_damping(mjm)
+    return D
+
+
+def _servo_damping(mjm: mujoco.MjModel) -> np.ndarray:
+    """``gear^2 kv`` on each dof driven by an actuator with a velocity bias (``biasprm[2] = -kv``), ``(nv,)``."""
+    D = np.zeros(mjm.nv)
+    if int(mjm.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_ACTUATION):
+        return D
+    for a in range(mjm.nu):
+        if int(mjm.actuator_biastype[a]) != _BIAS_AFFINE or mjm.actuator_biasprm[a, 2] == 0:
+            continue
+        if int(mjm.actuator_trntype[a]) != _TRN_JOINT:
+            raise ValueError(
+                f"actuator {_name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a)!r}: a velocity bias through a non-joint "
+                "transmission is not supported"
+            )
+        g = mjm.actuator_gear[a, 0]
+        D[mjm.jnt_dofadr[mjm.actuator_trnid[a, 0]]] -= g * g * mjm.actuator_biasprm[a, 2]
+    return D
+
+
+def _rk4_stiffness(mjm: mujoco.MjModel) -> np.ndarray:
+    K = np.zeros(mjm.nv)
+    if int(mjm.opt.integrator) != int(mujoco.mjtIntegrator.mjINT_RK4):
+        return K
+    for j in range(mjm.njnt):
+        if int(mjm.jnt_type[j]) in _SHIELDABLE:
+            K[mjm.jnt_dofadr[j]] += mjm.jnt_stiffness[j]
+    for a in range(mjm.nu):
+        if int(mjm.actuator_biastype[a]) == _BIAS_AFFINE and int(mjm.actuator_trntype[a]) == _TRN_JOINT:
+            j = mjm.actuator_trnid[a, 0]
+            if int(mjm.jnt_type[j]) in _SHIELDABLE:
+                g = mjm.actuator_gear[a, 0]
+                K[mjm.jnt_dofadr[j]] -= g * g * mjm.actuator_biasprm[a, 1]
+    return K
+
+
+def _coupled(mjm: mujoco.MjModel, dofs: np.ndarray) -> bool:
+    """Whether a shielded dof and an unshielded one share a chain (then ``M`` couples them)."""
+    shielded = set(int(d) for d in dofs)
+
+    def ancestors(d):
+        out = []
+        d = int(mjm.dof_parentid[d])
+        while d >= 0:
+            out.append(d)
+            d = int(mjm.dof_parentid[d])
+        return out
+
+    for d in range(mjm.nv):
+        chain = set(ancestors(d))
+        if d in shielded and chain - shielded:
+            return True
+        if d not in shielded and chain & shielded:
+            return True
+    return False
+
+
+def _sample_states(mjm, qadr, limited, q_min, q_max, v_max, count, rng):
+    """Positions uniform in the ranges (unlimited: in [-pi, pi]); velocities uniform for half the samples,
+    at the vertices of the ``v_max`` box for the rest (the bias forces are quadratic in v)."""
+    lo = np.where(limited, q_min, -np.pi)
+    hi = np.where(limited, q_max, np.pi)
+    q = rng.uniform(lo, hi, size=(count, len(qadr)))
+    v = rng.uniform(-1.0, 1.0, size=(count, len(qadr)))
+    v[count // 2 :] = np.sign(v[count // 2 :])
+    return q, v * v_max
+
+
+def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float):
+    """Per joint, an acceleration ``s`` [rad/s^2] the actuator can brake the joint at, at every sampled state,
+    while every other shielded joint does anything in ``[-s_j, s_j]`` (Alg. 4 on the braking side, with the
+    coupling of ``M`` bounded by ``sum_j |M_ij| s_j``): first each joint alone (``s_diag``, the box's
+    shape), then the largest uniform scale of that box (<= 1) for which every joint's braking torque fits.
+    A joint that cannot brake alone keeps its (<= 0) ``s_diag``. "At every state" is the ``quantile`` of the
+    sampled states (0: the worst one; weak actuators, e.g. Brax's pusher, cannot brake against the
+    Coriolis forces of all joints at ``v_max`` at once, a state the arm never reaches). Returns
+    ``(s, tau, infeasible)``: ``tau`` the braking torque available (same quantile), ``infeasible`` the
+    fraction of sampled states where ``s`` cannot be met (``Robot.brake_shortfall``)."""
+    d = mujoco.MjData(mjm)
+    dofs, qadr = robot["dof_adr"], robot["qpos_adr"]
+    n = len(dofs)
+    N = len(qs)
+    M = np.zeros((N, n, n))
+    h = np.zeros((N, n))
+    lo = np.zeros((N, n))
+    hi = np.zeros((N, n))
+    full = np.zeros((mjm.nv, mjm.nv))
+    g, gain, b = robot["gear"], robot["gain"], robot["bias"]
+    for i in range(N):
+        d.qpos[:] = mjm.qpos0
+        d.qpos[qadr] = qs[i]
+        d.qvel[:] = 0.0
+        d.qvel[dofs] = vs[i]
+        mujoco.mj_fwdPosition(mjm, d)
+        mujoco.mj_fwdVelocity(mjm, d)
+        mujoco.mj_fullM(mjm, d, full)
+        Me = full + robot["timestep"] * np.diag(robot["implicit_damping"])
+        M[i] = Me[np.ix_(dofs, dofs)]
+        h[i] = (d.qfrc_bias - d.qfrc_passive)[dofs]
+        bias = b[:, 0] + b[:, 1] * g * qs[i] + b[:, 2] * g * vs[i]
+        c_lo, c_hi = robot["ctrl_range"][:, 0], robot["ctrl_range"][:, 1]
+        f_lo = np.maximum(gain * c_lo + bias, robot["force_range"][:, 0])
+        f_hi = np.minimum(gain * c_hi + bias, robot["force_range"][:, 1])
+        t1, t2 = g * f_lo, g * f_hi
+        lo[i], hi[i] = np.minimum(t1, t2), np.maximum(t1, t2)
+    sigma = np.where(vs >= 0, 1.0, -1.0)  # braking acceleration is -sigma
+    # braking joint i by s_i: tau_i = h_i - sigma_i M_ii s_i + sum_j M_ij a_j must stay inside the range on
+    # the braking side: sigma_i = +1 needs tau_i >= lo_i, sigma_i = -1 needs tau_i <= hi_i
+    avail = np.where(sigma > 0, h - lo, hi - h)  # torque the actuator can spend braking, (N, n)
+    diag = np.diagonal(M, axis1=1, axis2=2)
+    s_diag = np.quantile(avail / diag, quantile, axis=0)  # each joint alone
+    a_nom = np.maximum(s_diag, 0.0)
+    # coupled: one uniform scale of that box, as jl.torque.box_scale (the other joints anywhere in it)
+    reach = np.abs(M) @ a_nom  # (N, n)
+    ratio = np.where(reach > 0, avail / np.where(reach > 0, reach, 1.0), np.inf)
+    scale = min(1.0, float(np.quantile(np.min(ratio, axis=1), quantile)))
+    s2 = np.where(s_diag > 0, max(scale, 0.0) * a_nom, s_diag)
+    infeasible = np.mean(avail - np.abs(M) @ s2.clip(0.0) < 0.0, axis=0)
+    tau = np.quantile(avail, quantile, axis=0)
+    return s2, tau, infeasible

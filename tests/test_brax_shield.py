@@ -1,0 +1,143 @@
+"""JointLimitShield on third-party Brax envs (MJX) and the shipped servo Panda: violations measured at
+every physics substep under adversarial policies, the unshielded baseline violating, exact actuation,
+not freezing the robot, bad input. (The 10^5-step campaign: benchmarks/shield_adversarial.py.)"""
+
+import warnings
+
+import jaxlimits.envs  # noqa: F401  (XLA flags first)
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    import brax.envs
+
+from jaxlimits.envs import JointLimitShield
+from jaxlimits.envs.adversarial import inside_reset, shield_rollout
+from jaxlimits.envs.reach import make_servo_panda_reach
+
+BATCH, STEPS = 64, 100  # 6400 env-steps per run here; the campaign runs >= 1e5
+
+
+def _shield_pusher(env, **kw):
+    # Brax pusher's 2 N m motors cannot brake every joint against the Coriolis forces of all joints at
+    # 2 rad/s at once: a_max comes from the 0.1 % quantile of the sampled states, with a warning
+    with pytest.warns(UserWarning, match="quantile"):
+        return JointLimitShield(env, v_max=2.0, **kw)
+
+
+def _pusher(no_contact=False):
+    env = brax.envs.get_environment("pusher", backend="mjx")
+    if no_contact:
+        flags = env.sys.opt.disableflags | int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        env.sys = env.sys.tree_replace({"opt.disableflags": flags})
+    return env
+
+
+@pytest.fixture(scope="module")
+def panda_runs():
+    out = {}
+    for method in ("viability", "none"):
+        env = JointLimitShield(make_servo_panda_reach(), method=method)
+        out[method] = (env, shield_rollout(env, BATCH, STEPS, reset=inside_reset(env)))
+    return out
+
+
+def test_servo_panda_reads_limits_and_servos_from_the_model(panda_runs):
+    r = panda_runs["viability"][0].robot
+    assert r.names == tuple(f"joint{i}" for i in range(1, 8))
+    np.testing.assert_allclose(r.gain, [1000, 1000, 750, 750, 300, 300, 300])
+    np.testing.assert_allclose(r.bias[:, 2], [-20, -20, -4, -4, -2, -2, -2])
+    np.testing.assert_allclose(r.force_range[:, 1], [100] * 4 + [12] * 3)
+    assert r.a_max_source == "torque" and np.all(r.limits.a_max > 0)
+    np.testing.assert_allclose(r.limits.v_max, [2.175] * 4 + [2.61] * 3)  # MJCF custom numerics
+
+
+def test_servo_panda_shielded_never_violates_and_unshielded_does(panda_runs):
+    _, shielded = panda_runs["viability"]
+    _, unshielded = panda_runs["none"]
+    assert shielded["env_steps"] == BATCH * STEPS
+    for k in ("position", "velocity", "nonviable", "nonfinite"):
+        assert shielded[f"count/{k}"] == 0, (k, shielded)
+    # the torque box is computed at the step's start state: a servo can still saturate briefly later in
+    # the step (measured: 12 of 6400 steps), counted, and harmless here
+    assert shielded["count/saturated"] < 0.01 * shielded["env_steps"], shielded
+    assert np.isfinite(shielded["max/accel_error"])  # exactness: tests/test_robot.py (float64), reacher, pusher
+    assert unshielded["count/position"] + unshielded["count/velocity"] > 0, unshielded
+
+
+def test_brax_reacher_shielded_never_violates_and_unshielded_does():
+    counts = {}
+    for method in ("viability", "none"):
+        env = JointLimitShield(brax.envs.get_environment("reacher", backend="mjx"), v_max=4.0, method=method)
+        counts[method] = shield_rollout(env, BATCH, STEPS)
+    assert not env.robot.limited[0]  # joint0 is unlimited: velocity and acceleration limits only
+    s = counts["viability"]
+    assert s["count/position"] == 0 and s["count/velocity"] == 0 and s["count/saturated"] == 0, s
+    assert s["max/accel_error"] < 1e-3
+    assert counts["none"]["count/velocity"] > 0, counts["none"]
+
+
+def test_brax_pusher_exact_without_contacts_and_contacts_are_counted():
+    env = _shield_pusher(_pusher(no_contact=True))
+    r = shield_rollout(env, BATCH, STEPS, reset=inside_reset(env))
+    assert r["count/position"] == 0 and r["count/velocity"] == 0 and r["count/disturbance"] == 0, r
+    assert r["max/accel_error"] < 1e-3
+    env = _shield_pusher(_pusher())
+    r = shield_rollout(env, BATCH, STEPS, reset=inside_reset(env))
+    # with the table and the object, contacts push the arm: counted as disturbances, and the
+    # trajectories no contact touched never violate
+    assert r["undisturbed/count/position"] == 0 and r["undisturbed/count/velocity"] == 0, r
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known defect (measured): with every servo target at its upper bound the unshielded Panda reaches "
+    "them in 3 s, the shielded one moves joints 1-4 slowly (0.6-0.95 of the range short; joint 4 the other way): "
+    "a_des is the servo's start-of-step acceleration with the coupling of M, and the worst-case torque-derived "
+    "a_max (3-5 rad/s^2 on joints 1-4, damping 40) is small",
+)
+def test_targets_at_the_upper_bounds_bring_the_servo_panda_where_the_unshielded_one_goes(panda_runs):
+    """Not frozen: with every servo target at its upper bound for 3 s, each shielded joint ends within 10 %
+    of its range of where the unshielded arm ends (or of its upper limit), and inside its limits."""
+    ends = {}
+    for method in ("viability", "none"):
+        env = panda_runs[method][0]
+        step = jax.jit(env.step)
+        st = inside_reset(env)(jax.random.PRNGKey(3))
+        for _ in range(300):
+            st = step(st, jnp.ones(env.action_size))
+        ends[method] = np.asarray(st.pipeline_state.qpos)
+    lim = panda_runs["viability"][0].robot.limits
+    span = lim.q_max - lim.q_min
+    q = ends["viability"]
+    assert np.all(q <= lim.q_max) and np.all(q >= lim.q_min)
+    near = np.minimum(np.abs(q - np.minimum(ends["none"], lim.q_max)), lim.q_max - q) / span
+    assert np.all(near < 0.1), (q, ends["none"])
+
+
+def test_nan_actions_brake_and_are_counted(panda_runs):
+    env = panda_runs["viability"][0]
+    step = jax.jit(env.step)
+    st = inside_reset(env)(jax.random.PRNGKey(4))
+    for t in range(30):
+        a = jnp.full(env.action_size, jnp.nan) if t % 3 == 0 else jnp.ones(env.action_size)
+        st = step(st, a)
+        assert bool(st.metrics["shield/nonfinite"]) == (t % 3 == 0)
+        assert np.all(np.isfinite(np.asarray(st.pipeline_state.qpos)))
+        assert float(st.info["violation"]["position"]) == 0.0 and float(st.info["violation"]["velocity"]) == 0.0
+
+
+def test_bad_input_is_an_eager_error_naming_it():
+    with pytest.raises(ValueError, match="valid joints.*r_shoulder_pan_joint"):
+        JointLimitShield(_pusher(), joints=["elbow"], v_max=2.0)
+    with pytest.raises(ValueError, match="no velocity limit"):
+        JointLimitShield(_pusher())
+    with pytest.raises(TypeError, match="PipelineEnv on the mjx backend"):
+        JointLimitShield(brax.envs.get_environment("reacher", backend="generalized"), v_max=1.0)
+    with pytest.raises(ValueError, match="method must be one of"):
+        _shield_pusher(_pusher(), method="clip")

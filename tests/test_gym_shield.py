@@ -1,0 +1,334 @@
+"""``JointLimitShieldWrapper`` on third-party Gymnasium MuJoCo envs (Pusher-v5: Euler, contacts;
+Reacher-v5: RK4, an unlimited joint) under adversarial policies, against the unshielded baseline."""
+
+import time
+import warnings
+
+import gymnasium
+import mujoco
+import numpy as np
+import pytest
+
+from jaxlimits.envs.gym import JointLimitShieldWrapper
+from jaxlimits.envs.robot import Robot
+
+POLICIES = ("upper", "lower", "bang_bang", "uniform")
+EPISODE = 200  # steps between resets
+EPISODES_PER_POLICY = 25  # 4 policies x 25 x 200 = 2e4 env-steps per env and method
+BASELINE_EPISODES = EPISODES_PER_POLICY  # the same policies, seeds and steps as the shielded runs
+V_MAX = {"Pusher-v5": 2.0, "Reacher-v5": 4.0}
+# a position violation of the shielded stock Pusher must follow, within this many steps, a step in which
+# a contact (the arm on the table) pushed the shielded joints: contacts are a disturbance, not inverted
+DISTURBANCE_WINDOW = 10
+
+
+def _make(env_id, method="viability", contacts=True, **kwargs):
+    env = gymnasium.make(env_id)
+    if not contacts:
+        env.unwrapped.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # Pusher: the torque-derived a_max's quantile warning
+        return JointLimitShieldWrapper(env, v_max=V_MAX[env_id], method=method, **kwargs)
+
+
+def _action(policy, i, lo, hi, rng, ep_state):
+    if policy == "upper":
+        return hi
+    if policy == "lower":
+        return lo
+    if policy == "bang_bang":  # every joint bang-bang, random period and per-joint phase per episode
+        period, sign = ep_state
+        return np.where(sign * (1 if (i // period) % 2 == 0 else -1) > 0, hi, lo)
+    return rng.uniform(lo, hi)
+
+
+def _rollout(env, episodes_per_policy, seed=0):
+    """Runs every policy for ``episodes_per_policy`` episodes of ``EPISODE`` steps; returns per-step arrays."""
+    rng = np.random.default_rng(seed)
+    lo, hi = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+    rec = {k: [] for k in ("position", "velocity", "torque", "accel_error", "saturated", "constrained", "since")}
+    t0 = time.perf_counter()
+    for p, policy in enumerate(POLICIES):
+        for ep in range(episodes_per_policy):
+            env.reset(seed=seed * 100_000 + p * 1000 + ep)
+            ep_state = (int(rng.integers(1, 50)), rng.choice([-1, 1], size=lo.shape))
+            since = 10**9  # steps since the shielded joints last felt a constraint force
+            for i in range(EPISODE):
+                _, _, _, _, info = env.step(_action(policy, i, lo, hi, rng, ep_state))
+                s = info["shield"]
+                since = 0 if s["constrained"] else since + 1
+                for k in ("position", "velocity", "torque"):
+                    rec[k].append(info["violation"][k])
+                for k in ("accel_error", "saturated", "constrained"):
+                    rec[k].append(s[k])
+                rec["since"].append(since)
+    out = {k: np.asarray(v) for k, v in rec.items()}
+    out["seconds"] = time.perf_counter() - t0
+    out["tally"] = dict(env.tally)
+    return out
+
+
+@pytest.fixture(scope="module")
+def rollouts():
+    """``{(env_id, method): rollout}``, computed once for the module."""
+    res = {}
+    for env_id in V_MAX:
+        for method, episodes in (("viability", EPISODES_PER_POLICY), ("none", BASELINE_EPISODES)):
+            env = _make(env_id, method)
+            res[env_id, method] = _rollout(env, episodes)
+            env.close()
+            r = res[env_id, method]
+            n = len(r["position"])
+            print(
+                f"\n{env_id:11s} {method:9s} {n} steps in {r['seconds']:.1f} s ({r['seconds'] / n * 1e6:.0f} us/step): "
+                f"position violations {int(np.sum(r['position'] > 0))} (max {r['position'].max():.3g}), "
+                f"velocity {int(np.sum(r['velocity'] > 0))} (max {r['velocity'].max():.3g}), "
+                f"saturated {int(r['saturated'].sum())}, constrained {int(r['constrained'].sum())}, "
+                f"accel_error max {r['accel_error'].max():.3g}, "
+                f"free of constraints and saturation {_free_error(r):.3g} rad/s^2"
+            )
+    return res
+
+
+def _free_error(r):
+    free = ~r["constrained"] & ~r["saturated"]
+    return float(r["accel_error"][free].max()) if free.any() else float("nan")
+
+
+# ---- (a) adversarial policies, shielded vs unshielded ------------------------------------------------
+def test_reacher_shielded_never_violates(rollouts):
+    r = rollouts["Reacher-v5", "viability"]
+    assert len(r["position"]) >= 20_000
+    assert np.sum(r["position"] > 0) == 0, r["position"].max()
+    assert np.sum(r["velocity"] > 0) == 0, r["velocity"].max()
+    assert r["tally"]["position_violations"] == r["tally"]["velocity_violations"] == 0
+    # RK4 realises the held acceleration to second order only (a_max here is ~1e2-1e3 rad/s^2)
+    assert np.all(np.isfinite(r["accel_error"]))
+    assert _free_error(r) < 1e-1
+
+
+def test_pusher_shielded_violates_only_after_contact(rollouts):
+    """Stock Pusher: every violation follows, within ``DISTURBANCE_WINDOW`` steps, a step in which a contact
+    (the arm on or into the table) pushed the shielded joints: a constraint force the shield does not invert
+    (it depends on the acceleration), so the state can leave the viability kernel and overshoot. Without
+    contacts the same policies give none (``test_pusher_without_contacts_never_violates_and_realises_exactly``)."""
+    r = rollouts["Pusher-v5", "viability"]
+    assert len(r["position"]) >= 20_000
+    viol = (r["position"] > 0) | (r["velocity"] > 0)
+    print(
+        f"\nshielded Pusher: {int(viol.sum())} violating steps, all within {int(np.max(r['since'][viol], initial=0))} "
+        f"steps of a contact on the arm; {int(np.sum(r['since'] > DISTURBANCE_WINDOW))} steps farther from one"
+    )
+    assert np.all(r["since"][viol] <= DISTURBANCE_WINDOW), np.max(r["since"][viol])
+    assert np.sum(r["since"] > DISTURBANCE_WINDOW) > len(viol) // 2  # most steps are contact-free
+    assert r["position"].max() < 0.05  # [rad]; the unshielded baseline goes ~0.13 rad past
+    # Euler realises a_safe exactly where no constraint force acts and no actuator saturates
+    assert _free_error(r) < 1e-6
+
+
+@pytest.mark.parametrize("env_id", list(V_MAX))
+def test_unshielded_baseline_violates(rollouts, env_id):
+    base, shielded = rollouts[env_id, "none"], rollouts[env_id, "viability"]
+    n_base = np.sum((base["position"] > 0) | (base["velocity"] > 0))
+    n_shield = np.sum((shielded["position"] > 0) | (shielded["velocity"] > 0))
+    assert n_base > 0
+    assert np.sum(base["velocity"] > 0) > 0
+    # per step, the baseline violates far more often than the shield (Pusher: after contacts only)
+    assert n_base / len(base["position"]) > 10 * n_shield / len(shielded["position"])
+    assert base["tally"]["velocity_violations"] == np.sum(base["velocity"] > 0)
+
+
+def test_pusher_without_contacts_never_violates_and_realises_exactly():
+    """(d) Pusher with contacts disabled: 0 violations under the adversarial policies, and the held acceleration
+    is realised to float64 roundoff, checked from the env's own data over the whole step:
+    ``|(v_end - v_start) / (n h) - a_safe| < 1e-9`` (and per substep by the wrapper's ``accel_error``)."""
+    env = _make("Pusher-v5", contacts=False)
+    d, rob = env.unwrapped.data, env.robot
+    T = rob.timestep * env.unwrapped.frame_skip
+    rng = np.random.default_rng(1)
+    lo, hi = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+    worst_step, worst_sub, steps = 0.0, 0.0, 0
+    for p, policy in enumerate(POLICIES):
+        for ep in range(4):
+            env.reset(seed=7000 + 10 * p + ep)
+            ep_state = (int(rng.integers(1, 50)), rng.choice([-1, 1], size=lo.shape))
+            for i in range(EPISODE):
+                v0 = d.qvel[rob.dof_adr].copy()
+                _, _, _, _, info = env.step(_action(policy, i, lo, hi, rng, ep_state))
+                s = info["shield"]
+                assert info["violation"]["position"] == info["violation"]["velocity"] == 0.0
+                if s["saturated"]:
+                    continue
+                assert not s["constrained"]
+                worst_step = max(worst_step, float(np.max(np.abs((d.qvel[rob.dof_adr] - v0) / T - s["a_safe"]))))
+                worst_sub = max(worst_sub, s["accel_error"])
+                steps += 1
+    print(
+        f"\nPusher, no contacts: {steps} steps, realised-acceleration error {worst_step:.3g} (step), {worst_sub:.3g} (substep)"
+    )
+    assert env.tally["position_violations"] == env.tally["velocity_violations"] == 0
+    assert steps > 3000
+    assert worst_step < 1e-9 and worst_sub < 1e-9
+
+
+# ---- (b) not frozen -------------------------------------------------------------------------------
+def test_pusher_is_not_frozen_at_its_limits():
+    """Action +1 on every joint for 300 steps: every joint ends within 10 % of its range of the limit its commanded
+    acceleration points to (the sign of ``a_des`` over the last 50 steps), except the joints the table holds off
+    both limits in the unshielded run too (the shoulder lift: the arm lies on the table).
+
+    That limit is the upper one for all but the shoulder pan: Pusher's actions are torques and the shield acts on
+    ``a_des = M_eff^-1 qfrc_smooth``; with the elbow/wrist joints held at their limits by the shield, the inertial
+    coupling makes the pan's ``a_des`` negative (it assumes the others keep accelerating at ~20 rad/s^2, past their
+    limits), so the shielded pan goes to its *lower* limit, where the unshielded env's joint-limit constraint
+    forces let it swing to the upper one."""
+    plain = gymnasium.make("Pusher-v5")
+    env = _make("Pusher-v5")
+    rob = env.robot
+    lo, hi = rob.limits.q_min, rob.limits.q_max
+    tol = 0.1 * (hi - lo)
+    ends, a_des = {}, []
+    for name, e in (("plain", plain), ("shielded", env)):
+        e.reset(seed=3)
+        a = np.ones(e.action_space.shape)
+        for _ in range(300):
+            _, _, _, _, info = e.step(a)
+            if name == "shielded":
+                a_des.append(info["shield"]["a_des"])
+        ends[name] = e.unwrapped.data.qpos[rob.qpos_adr].copy()
+    up = np.mean(a_des[-50:], axis=0) > 0
+    target = np.where(up, hi, lo)
+    free = (ends["plain"] >= hi - tol) | (ends["plain"] <= lo + tol)  # not held off both limits by the table
+    print(f"\nupper limits {hi}\nplain end    {ends['plain'].round(3)}\nshielded end {ends['shielded'].round(3)}")
+    print(f"a_des points up {up}; free of the table {free}")
+    assert free.sum() == 6 and not free[1]  # all but the shoulder lift
+    near = np.abs(ends["shielded"] - target) <= tol
+    assert np.all(near[free]), {rob.names[i]: ends["shielded"][i] for i in np.flatnonzero(free & ~near)}
+    assert np.sum(near & up) == 5  # the upper limit of every joint but the pan (and the lift, on the table)
+    assert np.all(ends["shielded"] <= hi + 1e-3) and np.all(ends["shielded"] >= lo - 1e-3)
+
+
+# ---- (c) bad input ------------------------------------------------------------------------------------
+def test_unknown_joint_lists_the_valid_ones():
+    with pytest.raises(ValueError, match="valid joints") as e:
+        JointLimitShieldWrapper(gymnasium.make("Pusher-v5"), joints=["r_elbow"], v_max=2.0)
+    assert "r_elbow_flex_joint" in str(e.value) and "r_shoulder_pan_joint" in str(e.value)
+
+
+def test_not_a_mujoco_env():
+    with pytest.raises(TypeError, match="CartPoleEnv"):
+        JointLimitShieldWrapper(gymnasium.make("CartPole-v1"), v_max=1.0)
+
+
+_TINY = """
+<mujoco>
+  <worldbody>
+    <body>
+      <joint name="hinge" type="hinge" range="-1 1" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+    </body>
+  </worldbody>
+  <actuator>{}</actuator>
+</mujoco>
+"""
+
+
+def test_missing_v_max_and_unsupported_actuator():
+    model = mujoco.MjModel.from_xml_string(_TINY.format('<motor name="m" joint="hinge" ctrlrange="-1 1"/>'))
+    with pytest.raises(ValueError, match="no velocity limit for joints \\['hinge'\\]"):
+        Robot.from_model(model)
+    assert Robot.from_model(model, v_max=1.0).names == ("hinge",)
+    filt = _TINY.format('<general name="smoothed" joint="hinge" dyntype="filter" dynprm="0.05" ctrlrange="-1 1"/>')
+    with pytest.raises(ValueError, match="'smoothed'.*dyntype"):
+        Robot.from_model(mujoco.MjModel.from_xml_string(filt), v_max=1.0)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e12])
+def test_nonfinite_action_brakes(bad):
+    env = _make("Pusher-v5")
+    d = env.unwrapped.data
+    env.reset(seed=5)
+    for _ in range(20):
+        env.step(np.full(7, 2.0))
+    for k in range(60):
+        action = np.full(7, 2.0)
+        action[k % 7] = bad
+        if k % 3 == 0:
+            action[:] = bad
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*reward is a NaN")  # Pusher's reward uses the action
+            _, _, _, _, info = env.step(action)
+        assert np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))
+        assert info["shield"]["nonfinite"]
+        assert info["violation"]["position"] == info["violation"]["velocity"] == 0.0
+        # braking: the shield's command is finite and opposes the motion
+        assert np.all(np.isfinite(info["shield"]["a_safe"]))
+    assert env.tally["nonfinite"] == 60 and env.tally["position_violations"] == env.tally["velocity_violations"] == 0
+    # braked: -sign(v) a_max held for a step chatters about rest by at most one step's a_max T
+    T = env.robot.timestep * env.unwrapped.frame_skip
+    assert np.all(np.abs(d.qvel[env.robot.dof_adr]) <= env.robot.limits.a_max * T * (1 + 1e-6))
+
+
+def test_nonfinite_ctrl_of_an_unshielded_actuator():
+    """Only two Pusher joints shielded: a NaN for another actuator is zeroed (MuJoCo would zero the whole ctrl
+    vector) and counted; the shielded joints follow their own command."""
+    env = _make("Pusher-v5", joints=["r_shoulder_pan_joint", "r_shoulder_lift_joint"])
+    assert env.robot.n == 2
+    env.reset(seed=0)
+    action = np.full(7, 0.5)
+    action[4] = np.nan
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*reward is a NaN")
+        _, _, _, _, info = env.step(action)
+    s = info["shield"]
+    assert s["nonfinite"] and env.tally["nonfinite"] == 1
+    assert np.all(np.isfinite(s["a_des"])) and s["a_des"][0] > 0  # the env's ctrl, not braking
+    assert env.unwrapped.data.ctrl[4] == 0.0
+    assert np.all(np.isfinite(env.unwrapped.data.qvel))
+
+
+# ---- plumbing -----------------------------------------------------------------------------------------
+def test_takes_over_do_simulation_only_and_compiles_once():
+    env = _make("Pusher-v5")
+    base = env.unwrapped
+    assert base.do_simulation == env._do_simulation  # an instance attribute shadowing MujocoEnv's
+    obs, info = env.reset(seed=0)
+    assert env.a_prev.shape == (7,) and not env.a_prev.any()
+    for _ in range(5):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert obs.shape == env.observation_space.shape and np.isfinite(reward)
+    assert set(info["violation"]) == {"position", "velocity", "torque"}
+    assert {
+        "intervention",
+        "saturated",
+        "nonfinite",
+        "viable",
+        "accel_error",
+        "a_des",
+        "a_safe",
+        "lower",
+        "upper",
+    } <= set(info["shield"])
+    assert np.all(info["shield"]["lower"] <= info["shield"]["a_safe"] + 1e-6)
+    assert np.all(info["shield"]["a_safe"] <= info["shield"]["upper"] + 1e-6)
+    assert list(env._deciders) == [base.frame_skip] and env.tally["steps"] == 5
+    base.do_simulation(np.zeros(7), 2)  # another n_frames: its own decision, compiled once and cached
+    assert list(env._deciders) == [base.frame_skip, 2]
+    env.reset(seed=1)
+    assert not env.a_prev.any()
+    with pytest.raises(ValueError, match="already shielded"):
+        JointLimitShieldWrapper(env, v_max=2.0)
+
+
+def test_jerk_method_uses_the_previous_acceleration():
+    env = _make("Reacher-v5", method="jerk", j_max=1e5)
+    T = env.robot.timestep * env.unwrapped.frame_skip
+    lo, hi = env.action_space.low, env.action_space.high
+    env.reset(seed=0)
+    prev = np.zeros(2)
+    for i in range(400):
+        _, _, _, _, info = env.step(hi if (i // 7) % 2 else lo)
+        a = info["shield"]["a_safe"]
+        assert np.all(np.abs(a - prev) <= 1e5 * T * (1 + 1e-5))
+        prev = a
+    assert env.tally["position_violations"] == env.tally["velocity_violations"] == 0
