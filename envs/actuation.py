@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from jaxlimits.envs.robot import Robot
+from jaxlimits.envs.robot import Robot, shrink, torque_range
 
 
 class Inversion(NamedTuple):
@@ -42,30 +42,15 @@ class Inversion(NamedTuple):
     saturated: jax.Array  # bool
 
 
-TORQUE_BOX_MARGIN = 0.9  # room for M, h and the servos' bias changing over the step's substeps
+class TorqueModel(NamedTuple):
+    """What the decision needs to keep its command realisable: ``tau = M_ss a - f_s`` must lie in
+    ``[tau_lo, tau_hi]`` (``(n, n)``, ``(n,)`` each; the ranges already shrunk to ``TORQUE_MARGIN``).
+    Exact for chains the unshielded dofs do not couple."""
 
-
-def torque_range(xp, robot_arrays, q, v):
-    """``(lo, hi)`` ``(n,)``: the joint torque each shielded actuator can apply at ``(q, v)`` [N m or N]
-    (``gear (gain ctrl + bias)`` over ``ctrlrange``, clamped to ``forcerange``)."""
-    _, _, gear, gain, bias, c_rng, f_rng = robot_arrays
-    b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
-    f_lo = xp.clip(gain * c_rng[:, 0] + b, f_rng[:, 0], f_rng[:, 1])
-    f_hi = xp.clip(gain * c_rng[:, 1] + b, f_rng[:, 0], f_rng[:, 1])
-    t1, t2 = gear * f_lo, gear * f_hi
-    return xp.minimum(t1, t2), xp.maximum(t1, t2)
-
-
-def torque_box(xp, M_ss, f_s, tau_lo, tau_hi, a_max):
-    """A box of joint accelerations every one of which the actuators can realise at the state (Alg. 4's
-    torque-to-acceleration step made exact for the coupled ``M``): ``a_c +- s a_max`` with ``a_c`` the
-    acceleration at the middle of the torque ranges, ``M_ss a_c = f_s + (tau_lo + tau_hi) / 2``, and
-    ``s = max(min_i r_i / sum_j |M_ij| a_max_j, 0)``, ``r`` the ranges' half widths (``a_max`` only shapes
-    the box). ``(lower, upper)``."""
-    c, r = (tau_lo + tau_hi) / 2, TORQUE_BOX_MARGIN * (tau_hi - tau_lo) / 2
-    a_c = xp.linalg.solve(M_ss, f_s + c)
-    s = xp.maximum(xp.min(r / (xp.abs(M_ss) @ a_max)), 0.0)  # not capped at 1: the limits' box caps it
-    return a_c - s * a_max, a_c + s * a_max
+    M_ss: jax.Array
+    f_s: jax.Array
+    tau_lo: jax.Array
+    tau_hi: jax.Array
 
 
 def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool):
@@ -139,12 +124,12 @@ class MjxActuation:
         a_des = jnp.linalg.solve(M_eff, f_env)[dofs]
         return d, a_des, M_eff, f_other
 
-    def torque_box(self, d, M_eff, f_other, a_max):
-        """``(lower, upper)`` ``(n,)`` realisable accelerations at ``d``'s state (``torque_box``; uncoupled
-        chains: the unshielded dofs' accelerations do not enter)."""
+    def torque_model(self, d, M_eff, f_other, dt: float) -> TorqueModel:
+        """The ``TorqueModel`` at ``d``'s state (after ``smooth_stage``), for a step of ``dt`` [s]."""
         dofs = self._arrays[0]
-        lo, hi = torque_range(jnp, self._arrays, d.qpos[self.robot.qpos_adr], d.qvel[dofs])
-        return torque_box(jnp, M_eff[dofs[:, None], dofs[None, :]], f_other[dofs], lo, hi, a_max)
+        a_max = jnp.asarray(self.robot.limits.a_max, d.qvel.dtype)
+        lo, hi = torque_range(jnp, self._arrays, d.qpos[self.robot.qpos_adr], d.qvel[dofs], dt, a_max)
+        return TorqueModel(M_eff[dofs[:, None], dofs[None, :]], f_other[dofs], *shrink(lo, hi))
 
     def finish_substep(self, d, M_eff, f_other, a):
         """Set the shielded ctrl realising ``a`` ``(n,)``, then actuation, constraints and the integrator.
@@ -214,6 +199,14 @@ class CActuation:
             f_other -= self._stiff * d.qvel
         a_des = np.linalg.solve(M_eff, f_env)[self._dofs]
         return a_des, M_eff, f_other
+
+    def torque_model(self, d: mujoco.MjData, M_eff, f_other, dt: float) -> TorqueModel:
+        """As ``MjxActuation.torque_model`` (NumPy float64)."""
+        dofs = self._dofs
+        lo, hi = torque_range(
+            np, self._arrays, d.qpos[self._qadr], d.qvel[dofs], dt, np.asarray(self.robot.limits.a_max)
+        )
+        return TorqueModel(M_eff[np.ix_(dofs, dofs)], f_other[dofs], *shrink(lo, hi))
 
     def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a) -> Inversion:
         ctrl, excess, sat = _invert(

@@ -113,10 +113,11 @@ class JointLimitShield(Wrapper):
         ``a_max`` torque-derived; ``v_max`` is required unless the MJCF has it).
       method: ``"viability"``, ``"jerk"``, ``"naive"`` or ``"none"`` (``joint_shield.METHODS``).
       gradient: derivative of the projection (``jl.project_box``): ``"exact"`` or ``"straight_through"``.
-      torque_box: also intersect the bounds with the accelerations the actuators can realise at the
-        step's start state (``actuation.torque_box``; conflicts: the limits win, counted in
-        ``shield/torque_conflict``). Without it, a command the actuators cannot deliver saturates them
-        and, through the coupling of ``M``, moves the other joints off their commands too.
+      torque_limits: decide among the accelerations the actuators can realise at the step's start state
+        (``SafeAcceleration`` with an ``actuation.TorqueModel``: a box QP in torque space; when none inside
+        the bounds is realisable, counted in ``shield/torque_conflict``). Without it, a command the
+        actuators cannot deliver saturates them and, through the coupling of ``M``, moves the other
+        joints off their commands too.
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``.
@@ -131,11 +132,11 @@ class JointLimitShield(Wrapper):
         j_max=None,
         method: str = "viability",
         gradient: str = "exact",
-        torque_box: bool = True,
+        torque_limits: bool = True,
         **robot_kwargs,
     ):
         super().__init__(env)
-        self.torque_box = bool(torque_box) and method != "none"
+        self.torque_limits = bool(torque_limits) and method != "none"
         base = env.unwrapped
         if not isinstance(base, PipelineEnv) or getattr(base, "backend", None) != "mjx":
             raise TypeError(
@@ -144,8 +145,9 @@ class JointLimitShield(Wrapper):
             )
         if "_shielded_by" in base.__dict__:
             raise ValueError("this env is already shielded (one JointLimitShield per env)")
-        self.robot = Robot.from_model(_mj_model_of(base.sys), joints, v_max, a_max, j_max, **robot_kwargs)
         self.n_frames = int(base._n_frames)
+        robot_kwargs.setdefault("control_dt", float(base.sys.opt.timestep) * self.n_frames)
+        self.robot = Robot.from_model(_mj_model_of(base.sys), joints, v_max, a_max, j_max, **robot_kwargs)
         self.decide = SafeAcceleration(self.robot, self.n_frames, method, gradient)
         self.actuation = MjxActuation(self.robot, base.sys)
         self.method = method
@@ -172,8 +174,8 @@ class JointLimitShield(Wrapper):
 
         d, a_des, M, f = act.smooth_stage(pipeline_state, ctrl_clean)
         a_des = jnp.where(nonfinite, jnp.nan, a_des)  # SafeAcceleration substitutes braking, and flags it
-        box = act.torque_box(d, M, f, jnp.asarray(rob.limits.a_max, jnp.float32)) if self.torque_box else None
-        dec = self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, box)
+        torque = act.torque_model(d, M, f, self.decide.dt) if self.torque_limits else None
+        dec = self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, torque)
         a = dec.a_safe
 
         def record(d_before, d_after, inv):

@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxlimits.envs.actuation import CActuation
+from jaxlimits.envs.actuation import CActuation, TorqueModel
 from jaxlimits.envs.joint_shield import SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
@@ -89,6 +89,7 @@ def _zero_tally() -> dict:
         "nonfinite": 0,
         "nonviable": 0,
         "constrained": 0,
+        "torque_conflict": 0,
         "max_position_excess": 0.0,
         "max_velocity_excess": 0.0,
         "max_torque_excess": 0.0,
@@ -132,10 +133,12 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         a_max=None,
         j_max=None,
         method: str = "viability",
+        torque_limits: bool = True,
         **robot_kwargs,
     ):
         super().__init__(env)
         base = env.unwrapped
+        self.torque_limits = bool(torque_limits) and method != "none"
         missing = [name for name in _REQUIRED if not hasattr(base, name)]
         if missing or not isinstance(base.model, mujoco.MjModel) or not isinstance(base.data, mujoco.MjData):
             raise TypeError(
@@ -145,6 +148,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
             )
         if "_shielded_by" in vars(base):
             raise ValueError("this env is already shielded (one JointLimitShieldWrapper per env)")
+        robot_kwargs.setdefault("control_dt", float(base.model.opt.timestep) * int(base.frame_skip))
         self.robot = rob = Robot.from_model(base.model, joints, v_max, a_max, j_max, **robot_kwargs)
         self.actuation = CActuation(rob, base.model)
         self.method = method
@@ -174,15 +178,17 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
     # ---- the decision ------------------------------------------------------------------------------
     def _decider(self, n_frames: int):
         """``(SafeAcceleration, compiled)`` for ``n_frames`` substeps (cached). ``compiled(q, v, a_des,
-        a_prev)`` takes four ``(n,)`` float32 arrays and returns one packed ``(4 n + 1,)`` float32 array
-        ``[a_safe, lower, upper, viable, nonfinite]`` (one device-to-host transfer)."""
+        a_prev, M_ss, f_s, tau_lo, tau_hi)`` takes float32 arrays (the state, the command, the previous
+        acceleration and the ``TorqueModel``) and returns one packed ``(4 n + 2,)`` float32 array
+        ``[a_safe, lower, upper, viable, nonfinite, torque_conflict]`` (one device-to-host transfer)."""
         hit = self._deciders.get(n_frames)
         if hit is not None:
             return hit
         decide = SafeAcceleration(self.robot, n_frames, self.method)
 
-        def packed(q, v, a_des, a_prev):
-            dec = decide(q, v, a_des, a_prev)
+        def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi):
+            torque = TorqueModel(M_ss, f_s, tau_lo, tau_hi) if self.torque_limits else None
+            dec = decide(q, v, a_des, a_prev, torque)
             f32 = jnp.float32
             return jnp.concatenate(
                 [
@@ -191,11 +197,13 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                     dec.upper.astype(f32),
                     dec.viable.astype(f32),
                     dec.nonfinite.astype(f32)[None],
+                    dec.conflict.astype(f32)[None],
                 ]
             )
 
         spec = jax.ShapeDtypeStruct((self.robot.n,), jnp.float32)
-        compiled = jax.jit(packed).lower(spec, spec, spec, spec).compile()
+        mspec = jax.ShapeDtypeStruct((self.robot.n, self.robot.n), jnp.float32)
+        compiled = jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec).compile()
         self._deciders[n_frames] = (decide, compiled)
         return decide, compiled
 
@@ -222,8 +230,14 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         a_des, M, f = act.smooth_stage(d, ctrl)
         if shielded_bad:
             a_des = np.full(n, np.nan)
+        tm = act.torque_model(d, M, f, self._h * n_frames)
+        f32 = np.float32
         out = compiled(
-            d.qpos[qadr].astype(np.float32), d.qvel[dofs].astype(np.float32), a_des.astype(np.float32), self.a_prev
+            d.qpos[qadr].astype(f32),
+            d.qvel[dofs].astype(f32),
+            a_des.astype(f32),
+            self.a_prev,
+            *(x.astype(f32) for x in tm),
         )
         out = np.asarray(out)
         self.a_prev = out[:n]  # a fresh host array per call
@@ -259,6 +273,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "saturated": bool(S.any()),
                 "nonfinite": bad_in or bool(out[4 * n] > 0.5),
                 "viable": bool(np.all(out[3 * n : 4 * n] > 0.5)),
+                "torque_conflict": bool(out[4 * n + 1] > 0.5),
                 "constrained": bool(np.any(C != 0.0)),
                 "accel_error": accel_error,
                 "a_des": a_des,
@@ -298,8 +313,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         ``info["violation"]``: ``{"position", "velocity", "torque"}`` -> float, the largest excess over the
         step's substeps [rad or m, rad/s or m/s, N m or N], 0.0 when none. ``info["shield"]``:
         ``intervention`` (``max |a_safe - a_des|`` over the finite entries [rad/s^2]), ``saturated``,
-        ``nonfinite``, ``viable``, ``constrained`` (bools; ``constrained``: a contact or limit force acted on a
-        shielded dof in some substep), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
+        ``nonfinite``, ``viable``, ``constrained``, ``torque_conflict`` (bools; ``constrained``: a contact or
+        limit force acted on a shielded dof in some substep; ``torque_conflict``: no acceleration inside the
+        bounds was realisable at the step's start, see ``SafeAcceleration``), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
         [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
         env's step runs the physics several times, the maxima/any over them (arrays: the last).
         """
@@ -312,7 +328,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         for r in recs[:-1]:
             for k in ("position", "velocity", "torque", "intervention", "accel_error"):
                 rec[k] = max(rec[k], r[k])
-            for k in ("saturated", "nonfinite", "constrained"):
+            for k in ("saturated", "nonfinite", "constrained", "torque_conflict"):
                 rec[k] = rec[k] or r[k]
             rec["viable"] = rec["viable"] and r["viable"]
         info = dict(info)
@@ -327,6 +343,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         t["nonfinite"] += rec["nonfinite"]
         t["nonviable"] += not rec["viable"]
         t["constrained"] += rec["constrained"]
+        t["torque_conflict"] += rec["torque_conflict"]
         t["max_accel_error"] = max(t["max_accel_error"], rec["accel_error"])
         t["max_intervention"] = max(t["max_intervention"], rec["intervention"])
         return obs, reward, terminated, truncated, info

@@ -39,7 +39,7 @@ class Decision(NamedTuple):
     upper: jax.Array
     viable: jax.Array  # bool, the state was in the viability kernel
     nonfinite: jax.Array  # bool, a_des had a NaN/inf entry and braking was substituted
-    conflict: jax.Array  # bool, the torque box and the limit bounds were disjoint for some joint
+    conflict: jax.Array  # bool, no acceleration inside the bounds was realisable (torque rows violated)
 
 
 class SafeAcceleration:
@@ -69,10 +69,16 @@ class SafeAcceleration:
         if method in ("viability", "jerk"):
             jl.check_condition_11(lim, self.dt)
 
-    def __call__(self, q, v, a_des, a_prev=None, torque_box=None) -> Decision:
-        """``torque_box``: optional ``(lower, upper)`` of accelerations the actuators can realise at the state
-        (``actuation.torque_box``), intersected after the limits (``jl.intersect``: where they are disjoint
-        the limits win, the braking side; counted in ``Decision.conflict``)."""
+    def __call__(self, q, v, a_des, a_prev=None, torque=None) -> Decision:
+        """``torque``: optional ``actuation.TorqueModel`` (``tau = M a - f`` in ``[tau_lo, tau_hi]``). Then the
+        decision is made in torque space, where the realisable set is a box: ``jl.solve_box_qp`` projects
+        ``tau_des = M a_des - f`` onto ``{tau_lo <= tau <= tau_hi, lower <= M^-1 (tau + f) <= upper}`` in the
+        metric ``M^-1`` (Gauss's: the kinetic-energy distance ``(a - a_des)^T M (a - a_des)`` of the
+        accelerations; better conditioned than the Euclidean one's ``M^-2``), so ``a_safe`` is the nearest
+        realisable acceleration inside the bounds. Where none is (``Decision.conflict``), physics decides
+        what happens whatever is commanded: the torque box holds and the bounds are met with the least
+        violation. ``a_safe`` is then clipped into the bounds (exact bounds; the torque margin absorbs the
+        solver's tolerance); a non-finite solve falls back to the clip of the command (counted as a conflict)."""
         dtype = jnp.result_type(v)
         a_max = jnp.asarray(self.limits.a_max, dtype)
         bad = ~jnp.all(jnp.isfinite(a_des), axis=-1, keepdims=True)
@@ -85,11 +91,23 @@ class SafeAcceleration:
         if self.method == "jerk":
             kwargs["a_prev"] = jnp.zeros_like(v) if a_prev is None else a_prev
         b = jl.acc_bounds(q_eff, v, lim, self.dt, **kwargs)
-        conflict = jnp.zeros(jnp.shape(v)[:-1], bool)
-        if torque_box is not None:
-            both = jl.intersect(b, jl.Bounds(torque_box[0], torque_box[1], jnp.ones(jnp.shape(v), bool)))
-            b, conflict = both.bounds, jnp.any(both.conflict, axis=-1)
-        a_safe = jl.project_box(a_in, b.lower, b.upper, gradient=self.gradient)
+        if torque is None:
+            a_safe = jl.project_box(a_in, b.lower, b.upper, gradient=self.gradient)
+            conflict = jnp.zeros(jnp.shape(v)[:-1], bool)
+        else:
+            M, f = torque.M_ss, torque.f_s
+            Minv = jnp.linalg.inv(M)
+            Minv = 0.5 * (Minv + jnp.swapaxes(Minv, -1, -2))
+            a0 = (Minv @ f[..., None])[..., 0]
+            G = jnp.concatenate([Minv, -Minv], axis=-2)
+            h = jnp.concatenate([b.upper - a0, a0 - b.lower], axis=-1)
+            tau_des = (M @ a_in[..., None])[..., 0] - f
+            res = jl.solve_box_qp(tau_des, torque.tau_lo, torque.tau_hi, Minv, G=G, h=h, gradient=self.gradient)
+            a_qp = a0 + (Minv @ res.x[..., None])[..., 0]
+            # never a NaN to the simulator: a failed solve (ill-conditioned M in float32) falls back to the clip
+            ok = jnp.all(jnp.isfinite(a_qp), axis=-1, keepdims=True)
+            a_safe = jnp.clip(jnp.where(ok, a_qp, a_in), b.lower, b.upper)
+            conflict = res.infeasible | ~ok[..., 0]
         return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict)
 
     def violations(self, q, v) -> dict:

@@ -226,6 +226,7 @@ class Robot:
         torque_samples: int = 4096,
         torque_quantile: float | None = None,
         seed: int = 0,
+        control_dt: float | None = None,
     ) -> "Robot":
         """Read the robot from ``mj_model``; see the module docstring. Raises ``ValueError`` naming the
         joint, actuator or field when something is missing or unsupported.
@@ -235,9 +236,12 @@ class Robot:
         ``torque_samples``; default ``None``: the worst, unless the actuators cannot brake some joint at
         some sampled state, then the first of 0.1 %, 1 %, 5 % that gives every joint a positive
         ``a_max``, with a warning; see ``_braking_capacity``). Sampled, so an estimate, not a bound: the
-        shield counts every substep where an actuator saturates; pass ``a_max`` for your own.
+        shield counts every substep where an actuator saturates; pass ``a_max`` for your own. The braking
+        capacity uses the torque ranges the shield plans with (``TORQUE_MARGIN``, a servo's bias change over
+        ``control_dt`` [s], the shield's control period; default 5 substeps).
         """
         mjm = mj_model
+        control_dt = 5 * float(mjm.opt.timestep) if control_dt is None else float(control_dt)
         if int(mjm.opt.integrator) not in _INTEGRATORS:
             raise ValueError(
                 f"integrator {mujoco.mjtIntegrator(mjm.opt.integrator).name} is not supported; Euler, implicitfast, RK4 are"
@@ -321,7 +325,7 @@ class Robot:
         rng_np = np.random.default_rng(seed)
         qs, vs = _sample_states(mjm, qadr, limited, q_min, q_max, v, torque_samples, rng_np)
         for quantile in _QUANTILES if torque_quantile is None else (torque_quantile,):
-            s_brake, tau, shortfall = _braking_capacity(mjm, partial, qs, vs, quantile)
+            s_brake, tau, shortfall = _braking_capacity(mjm, partial, qs, vs, quantile, control_dt)
             if a is not None or np.all(s_brake > 0):
                 break
         if a is None and quantile > 0 and np.all(s_brake > 0) and torque_quantile is None:
@@ -355,6 +359,30 @@ class Robot:
         q_min = np.where(self.limited, lim.q_min, -R)
         q_max = np.where(self.limited, lim.q_max, R)
         return q * self.limited.astype(np.float32), lim.replace(q_min=q_min, q_max=q_max)
+
+
+TORQUE_MARGIN = 0.9  # fraction of each actuator's torque range the shield plans with (M, h change in a step)
+
+
+def torque_range(xp, robot_arrays, q, v, dt=0.0, a_max=0.0):
+    """``(lo, hi)`` ``(n,)``: the joint torque each shielded actuator can apply [N m or N] at ``(q, v)`` and
+    for ``dt`` [s] after it at accelerations up to ``a_max``: ``gear (gain ctrl + bias)`` over ``ctrlrange``
+    with the bias moved against it by its largest change over ``dt`` (a servo's ``kp |v| dt + kp a dt^2 / 2
+    + kv a dt``), clamped to ``forcerange``."""
+    _, _, gear, gain, bias, c_rng, f_rng = robot_arrays
+    b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
+    db = xp.abs(bias[:, 1] * gear) * (xp.abs(v) * dt + 0.5 * a_max * dt * dt) + xp.abs(bias[:, 2] * gear) * a_max * dt
+    f_lo = xp.clip(gain * c_rng[:, 0] + b + db, f_rng[:, 0], f_rng[:, 1])
+    f_hi = xp.clip(gain * c_rng[:, 1] + b - db, f_rng[:, 0], f_rng[:, 1])
+    f_lo, f_hi = xp.minimum(f_lo, f_hi), xp.maximum(f_lo, f_hi)
+    t1, t2 = gear * f_lo, gear * f_hi
+    return xp.minimum(t1, t2), xp.maximum(t1, t2)
+
+
+def shrink(tau_lo, tau_hi):
+    """The ranges shrunk about their middles to ``TORQUE_MARGIN`` of their widths."""
+    c, r = (tau_lo + tau_hi) / 2, TORQUE_MARGIN * (tau_hi - tau_lo) / 2
+    return c - r, c + r
 
 
 def _implicit_damping(mjm: mujoco.MjModel) -> np.ndarray:
@@ -445,7 +473,7 @@ def _sample_states(mjm, qadr, limited, q_min, q_max, v_max, count, rng):
     return q, v * v_max
 
 
-def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float):
+def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: float):
     """Per joint, an acceleration ``s`` [rad/s^2] the actuator can brake the joint at, at every sampled state,
     while every other shielded joint does anything in ``[-s_j, s_j]`` (Alg. 4 on the braking side, with the
     coupling of ``M`` bounded by ``sum_j |M_ij| s_j``): first each joint alone (``s_diag``, the box's
@@ -464,7 +492,9 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float):
     lo = np.zeros((N, n))
     hi = np.zeros((N, n))
     full = np.zeros((mjm.nv, mjm.nv))
-    g, gain, b = robot["gear"], robot["gain"], robot["bias"]
+    arrays = (None, None, robot["gear"], robot["gain"], robot["bias"], robot["ctrl_range"], robot["force_range"])
+    # the within-step change of a servo's bias from its velocity (the acceleration term is second order)
+    a_guess = np.zeros(n)
     for i in range(N):
         d.qpos[:] = mjm.qpos0
         d.qpos[qadr] = qs[i]
@@ -476,12 +506,7 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float):
         Me = full + robot["timestep"] * np.diag(robot["implicit_damping"])
         M[i] = Me[np.ix_(dofs, dofs)]
         h[i] = (d.qfrc_bias - d.qfrc_passive)[dofs]
-        bias = b[:, 0] + b[:, 1] * g * qs[i] + b[:, 2] * g * vs[i]
-        c_lo, c_hi = robot["ctrl_range"][:, 0], robot["ctrl_range"][:, 1]
-        f_lo = np.maximum(gain * c_lo + bias, robot["force_range"][:, 0])
-        f_hi = np.minimum(gain * c_hi + bias, robot["force_range"][:, 1])
-        t1, t2 = g * f_lo, g * f_hi
-        lo[i], hi[i] = np.minimum(t1, t2), np.maximum(t1, t2)
+        lo[i], hi[i] = shrink(*torque_range(np, arrays, qs[i], vs[i], control_dt, a_guess))
     sigma = np.where(vs >= 0, 1.0, -1.0)  # braking acceleration is -sigma
     # braking joint i by s_i: tau_i = h_i - sigma_i M_ii s_i + sum_j M_ij a_j must stay inside the range on
     # the braking side: sigma_i = +1 needs tau_i >= lo_i, sigma_i = -1 needs tau_i <= hi_i

@@ -173,38 +173,29 @@ def test_pusher_without_contacts_never_violates_and_realises_exactly():
 
 # ---- (b) not frozen -------------------------------------------------------------------------------
 def test_pusher_is_not_frozen_at_its_limits():
-    """Action +1 on every joint for 300 steps: every joint ends within 10 % of its range of the limit its commanded
-    acceleration points to (the sign of ``a_des`` over the last 50 steps), except the joints the table holds off
-    both limits in the unshielded run too (the shoulder lift: the arm lies on the table).
-
-    That limit is the upper one for all but the shoulder pan: Pusher's actions are torques and the shield acts on
-    ``a_des = M_eff^-1 qfrc_smooth``; with the elbow/wrist joints held at their limits by the shield, the inertial
-    coupling makes the pan's ``a_des`` negative (it assumes the others keep accelerating at ~20 rad/s^2, past their
-    limits), so the shielded pan goes to its *lower* limit, where the unshielded env's joint-limit constraint
-    forces let it swing to the upper one."""
+    """Action +1 on every joint for 300 steps: every joint the table leaves free ends at least half way from
+    its start to where the unshielded arm ends (the shield decides among the accelerations the 2 N m motors
+    can realise; the shoulder pan's torque-derived a_max is small, so it is the slowest), inside its limits;
+    the shoulder lift lies on the table in both runs."""
     plain = gymnasium.make("Pusher-v5")
     env = _make("Pusher-v5")
     rob = env.robot
     lo, hi = rob.limits.q_min, rob.limits.q_max
     tol = 0.1 * (hi - lo)
-    ends, a_des = {}, []
+    ends, starts = {}, {}
     for name, e in (("plain", plain), ("shielded", env)):
         e.reset(seed=3)
+        starts[name] = e.unwrapped.data.qpos[rob.qpos_adr].copy()
         a = np.ones(e.action_space.shape)
         for _ in range(300):
-            _, _, _, _, info = e.step(a)
-            if name == "shielded":
-                a_des.append(info["shield"]["a_des"])
+            e.step(a)
         ends[name] = e.unwrapped.data.qpos[rob.qpos_adr].copy()
-    up = np.mean(a_des[-50:], axis=0) > 0
-    target = np.where(up, hi, lo)
     free = (ends["plain"] >= hi - tol) | (ends["plain"] <= lo + tol)  # not held off both limits by the table
     print(f"\nupper limits {hi}\nplain end    {ends['plain'].round(3)}\nshielded end {ends['shielded'].round(3)}")
-    print(f"a_des points up {up}; free of the table {free}")
     assert free.sum() == 6 and not free[1]  # all but the shoulder lift
-    near = np.abs(ends["shielded"] - target) <= tol
-    assert np.all(near[free]), {rob.names[i]: ends["shielded"][i] for i in np.flatnonzero(free & ~near)}
-    assert np.sum(near & up) == 5  # the upper limit of every joint but the pan (and the lift, on the table)
+    gap = np.abs(ends["shielded"] - ends["plain"])
+    gone = gap <= np.maximum(0.5 * np.abs(starts["shielded"] - ends["plain"]), 0.02 * (hi - lo))
+    assert np.all(gone[free]), {rob.names[i]: ends["shielded"][i] for i in np.flatnonzero(free & ~gone)}
     assert np.all(ends["shielded"] <= hi + 1e-3) and np.all(ends["shielded"] >= lo - 1e-3)
 
 
