@@ -21,7 +21,7 @@ _EXPORTS = {
     "make_servo_panda_reach": "jaxlimits.envs.reach",
     "make_ur5e_reach": "jaxlimits.envs.reach",
     "shield_rollout": "jaxlimits.envs.adversarial",
-    "adversarial_rollout": "jaxlimits.envs.safety",
+    "adversarial_rollout": "jaxlimits.envs.adversarial",
     "TaskSpaceActions": "jaxlimits.envs.task_space",
     "WallStrike": "jaxlimits.envs.wall_strike",
     "make_wall_strike": "jaxlimits.envs.wall_strike",

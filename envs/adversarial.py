@@ -1,4 +1,6 @@
-"""Adversarial rollouts of a ``JointLimitShield``-wrapped Brax env: the measurement behind its claims.
+"""Adversarial rollouts, the measurement behind the shields' claims: ``shield_rollout`` for a
+``JointLimitShield``-wrapped Brax env, ``adversarial_rollout`` for the project's ``ArmReach`` envs under
+``SafetyWrapper`` (several shields in one compile).
 
 ``shield_rollout(env, batch, steps)`` runs ``batch`` envs for ``steps`` control steps in one jitted
 scan, the envs split evenly over ``POLICIES`` (normalised actions in ``[-1, 1]``: every target or
@@ -15,6 +17,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+import jaxlimits as jl
+from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach
+from jaxlimits.envs.safety import SafetyWrapper
 
 POLICIES = ("upper", "lower", "bang_bang", "random")
 _COUNTED = ("position", "velocity", "torque", "saturated", "nonfinite", "nonviable", "disturbance")
@@ -112,4 +118,124 @@ def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 20
     for j, p in enumerate(POLICIES):
         for k, x in reduce(kind_np == j).items():
             out[f"{p}/{k}"] = x
+    return out
+
+
+# ---- adversarial rollouts of the project's ArmReach envs under SafetyWrapper ---------------------
+ARM_POLICIES = ("toward_limits", "bang_bang", "random")
+_EXTRA_DEFAULTS = {"torque_box_scale": np.inf, "torque_box_conflict": 0.0}  # for shields without the torque box
+
+
+def _policy_action(kind, signs, period, t, key, n):
+    """Adversarial commands in normalised units: full acceleration toward a limit per joint
+    (random signs), bang-bang with a random period per joint, or uniform in [-1.5, 1.5]."""
+    toward = signs
+    bang = jnp.where((t // period) % 2 == 0, signs, -signs)
+    rand = jax.random.uniform(key, (n,), jnp.float32, -1.5, 1.5)
+    return jnp.where(kind == 0, toward, jnp.where(kind == 1, bang, rand))
+
+
+def adversarial_rollout(env: ArmReach, methods, batch, steps: int, seed: int = 0, episode: int = 100):
+    """Run every shield in ``methods`` on ``batch`` envs for ``steps`` control steps, in one jit.
+
+    The physics is compiled once: each env carries a method id, every shield's bounds are computed
+    (cheap) and the env's own is selected. Envs cycle over the ``ARM_POLICIES`` and restart from their
+    initial state every ``episode`` steps (an unshielded arm otherwise spins up without bound).
+    ``methods`` holds method names or ``SafetyWrapper`` instances (of ``env``; reported under their
+    ``name``, e.g. ``"viability+torque_box"``). ``batch`` is an int (envs per method) or a dict
+    name -> envs. Returns a dict per name with ``env_steps``, ``count/*`` (violating env-steps),
+    ``max/*`` (largest violation magnitude), ``accel_error`` and ``model_error`` (max),
+    ``intervention`` (mean), per policy counts of position violations, and for torque-box shields
+    ``count/torque_box_conflict``, ``min/torque_box_scale`` and ``count/torque_unflagged`` (torque
+    violations in steps without a conflict: the box was computed at the step's start state).
+    """
+    wrappers = [m if isinstance(m, SafetyWrapper) else SafetyWrapper(env, m) for m in methods]
+    names = [w.name for w in wrappers]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate shield names {names}")
+    if any(w.env is not env for w in wrappers):
+        raise ValueError("every SafetyWrapper must wrap the env passed")
+    n, M = env.n, len(methods)
+    sizes = [batch[m] if isinstance(batch, dict) else int(batch) for m in names]
+    B = sum(sizes)
+    method_id_np = np.repeat(np.arange(M), sizes)
+    policy_np = np.concatenate([np.arange(b) % len(ARM_POLICIES) for b in sizes])
+
+    @jax.jit
+    def run(key):
+        k_reset, k_sign, k_per, k_roll = jax.random.split(key, 4)
+        states = jax.vmap(env.reset)(jax.random.split(k_reset, B))
+        method_id = jnp.asarray(method_id_np)
+        policy = jnp.asarray(policy_np)
+        signs = jnp.where(jax.random.bernoulli(k_sign, 0.5, (B, n)), 1.0, -1.0).astype(jnp.float32)
+        period = jax.random.randint(k_per, (B, n), 5, 60)
+        a_max = jnp.asarray(env.limits.a_max, jnp.float32)
+
+        def one(state, mid, kind, sg, per, t, k):
+            a_des = _policy_action(kind, sg, per, t, k, n) * a_max
+            cands = [w._shield(state, a_des) for w in wrappers]
+            a_safe = jnp.stack([c[0] for c in cands])[mid]
+            lower = jnp.stack([c[1].lower for c in cands])[mid]
+            upper = jnp.stack([c[1].upper for c in cands])[mid]
+            viable = jnp.stack([c[1].viable for c in cands])[mid]
+            extra = {
+                k: jnp.stack([c[2].get(k, jnp.asarray(d, jnp.float32)) for c in cands])[mid]
+                for k, d in _EXTRA_DEFAULTS.items()
+            }
+            ns = wrappers[0].finish(state, a_des, a_safe, jl.Bounds(lower, upper, viable), extra)
+            return ns.replace(info=state.info | {"a_prev": ns.info["a_prev"], "target": ns.info["target"]})
+
+        def body(carry, t):
+            states, acc = carry
+            restart = (t > 0) & (t % episode == 0)
+            states = jax.tree.map(lambda a, b: jnp.where(restart, a, b), states0, states)
+            keys = jax.random.split(jax.random.fold_in(k_roll, t), B)
+            ns = jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None, 0))(states, method_id, policy, signs, period, t, keys)
+            m = ns.metrics
+            acc = {
+                **{f"count/{k}": acc[f"count/{k}"] + m[f"count/{k}"] for k in VIOLATION_KEYS},
+                **{f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[f"violation/{k}"]) for k in VIOLATION_KEYS},
+                "accel_error": jnp.maximum(acc["accel_error"], m["accel_error"]),
+                "model_error": jnp.maximum(acc["model_error"], m["model_error"]),
+                "intervention": acc["intervention"] + m["intervention"],
+                "count/torque_box_conflict": acc["count/torque_box_conflict"] + m["torque_box_conflict"],
+                "count/torque_unflagged": acc["count/torque_unflagged"]
+                + m["count/torque"] * (1.0 - m["torque_box_conflict"]),
+                "min/torque_box_scale": jnp.minimum(acc["min/torque_box_scale"], m["torque_box_scale"]),
+            }
+            return (ns.replace(metrics=states.metrics), acc), None
+
+        zeros = jnp.zeros((B,), jnp.float32)
+        acc0 = {
+            **{f"count/{k}": zeros for k in VIOLATION_KEYS},
+            **{f"max/{k}": zeros for k in VIOLATION_KEYS},
+            "accel_error": zeros,
+            "model_error": zeros,
+            "intervention": zeros,
+            "count/torque_box_conflict": zeros,
+            "count/torque_unflagged": zeros,
+            "min/torque_box_scale": jnp.full((B,), jnp.inf, jnp.float32),
+        }
+        states0 = states
+        (_, acc), _ = jax.lax.scan(body, (states, acc0), jnp.arange(steps))
+        return acc, method_id, policy
+
+    acc, method_id, policy = jax.device_get(run(jax.random.PRNGKey(seed)))
+    out = {}
+    for i, (m, w) in enumerate(zip(names, wrappers)):
+        sel = method_id == i
+        r = {"env_steps": int(sel.sum()) * steps}
+        for k in VIOLATION_KEYS:
+            r[f"count/{k}"] = int(acc[f"count/{k}"][sel].sum())
+            r[f"max/{k}"] = float(acc[f"max/{k}"][sel].max())
+        r["accel_error"] = float(acc["accel_error"][sel].max())
+        r["model_error"] = float(acc["model_error"][sel].max())
+        r["intervention"] = float(acc["intervention"][sel].sum()) / r["env_steps"]
+        for j, p in enumerate(ARM_POLICIES):
+            r[f"count/position/{p}"] = int(acc["count/position"][sel & (policy == j)].sum())
+        if w.torque_box:
+            r["count/torque_box_conflict"] = int(acc["count/torque_box_conflict"][sel].sum())
+            r["count/torque_unflagged"] = int(acc["count/torque_unflagged"][sel].sum())
+            r["min/torque_box_scale"] = float(acc["min/torque_box_scale"][sel].min())
+        out[m] = r
     return out

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxlimits.envs.arm import make_panda_reach, make_planar_reach
-from jaxlimits.envs.safety import adversarial_rollout
+from jaxlimits.envs.adversarial import adversarial_rollout
 
 METHODS = ("none", "clip", "naive", "viability", "jerk")
 # The viability and jerk shields get >= 1e5 env-steps per arm each; the baselines, which violate

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from jaxlimits.envs.arm import make_panda_reach
-from jaxlimits.envs.safety import SafetyWrapper, adversarial_rollout
+from jaxlimits.envs.adversarial import adversarial_rollout
+from jaxlimits.envs.safety import SafetyWrapper
 
 
 def test_bad_margin_raises():
