@@ -44,11 +44,18 @@ def main():
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--v_max", type=float, default=2.0)
+    p.add_argument("--method", default="viability")
+    p.add_argument("--no-torque-limits", action="store_true", help="JointLimitShield(torque_limits=False)")
     args = p.parse_args()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         plain = brax.envs.get_environment(args.env, backend="mjx")
-        shielded = JointLimitShield(brax.envs.get_environment(args.env, backend="mjx"), v_max=args.v_max)
+        shielded = JointLimitShield(
+            brax.envs.get_environment(args.env, backend="mjx"),
+            v_max=args.v_max,
+            method=args.method,
+            torque_limits=not args.no_torque_limits,
+        )
     fns = {
         "unwrapped": rollout_fn(plain, args.batch, args.steps),
         "shielded": rollout_fn(shielded, args.batch, args.steps),
@@ -62,7 +69,7 @@ def main():
             jax.block_until_ready(f(jax.random.PRNGKey(r + 1)))
             times[k].append(time.perf_counter() - t)
     per = {k: float(np.median(v)) / (args.batch * args.steps) * 1e6 for k, v in times.items()}
-    print(f"{args.env}, batch {args.batch}: us per env-step")
+    print(f"{args.env}, batch {args.batch}, {args.method}, torque limits {not args.no_torque_limits}: us per env-step")
     for k, v in per.items():
         print(f"  {k:10s} {v:8.2f}")
     overhead = per["shielded"] / per["unwrapped"] - 1.0

@@ -23,7 +23,7 @@ from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach
 from jaxlimits.envs.safety import SafetyWrapper
 
 POLICIES = ("upper", "lower", "bang_bang", "random")
-_COUNTED = ("position", "velocity", "torque", "saturated", "nonfinite", "nonviable", "disturbance")
+_COUNTED = ("position", "velocity", "torque", "saturated", "nonfinite", "nonviable", "disturbance", "torque_conflict")
 
 
 def _action(kind, signs, period, t, key):
