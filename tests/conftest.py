@@ -62,7 +62,16 @@ def count_compilations():
 # The slowest files (compilation-bound, minutes each) go first, so that with `make test`'s two
 # pytest-xdist workers (`--dist loadfile --no-loadscope-reorder`) none of them starts last and
 # leaves one core idle at the end.
-SLOWEST_FILES_FIRST = ("test_training.py", "test_training_apg.py", "test_notebooks.py", "test_envs_impact.py")
+SLOWEST_FILES_FIRST = (
+    "test_training.py",
+    "test_brax_shield.py",
+    "test_training_apg.py",
+    "test_limit_contract.py",
+    "test_notebooks.py",
+    "test_gym_shield.py",
+    "test_third_party_training.py",
+    "test_envs_impact.py",
+)
 
 
 def pytest_collection_modifyitems(config, items):
