@@ -174,12 +174,15 @@ class CActuation:
         self._stiff = 0.5 * robot.timestep * robot.rk4_stiffness
         self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         self._M = np.zeros((model.nv, model.nv))
+        self._diag = np.diag_indices(model.nv)
         self._act = np.asarray(robot.actuator_ids)
         self._dofs = np.asarray(robot.dof_adr)
         self._qadr = np.asarray(robot.qpos_adr)
 
-    def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray):
-        """As ``MjxActuation.smooth_stage`` (``d`` is changed in place); returns ``(a_des, M_eff, f_other)``."""
+    def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray, want_a_des: bool = True):
+        """As ``MjxActuation.smooth_stage`` (``d`` is changed in place); returns ``(a_des, M_eff, f_other)``.
+
+        ``want_a_des=False`` skips the solve for ``a_des`` (``None``): only a step's first substep needs it."""
         m = self.model
         d.ctrl[:] = ctrl
         if self._rk4:
@@ -191,13 +194,13 @@ class CActuation:
         mujoco.mj_fwdAcceleration(m, d)
         mujoco.mj_fullM(m, d, self._M)
         M_eff = self._M
-        M_eff[np.diag_indices_from(M_eff)] += self._damping
+        M_eff[self._diag] += self._damping
         f_env = d.qfrc_smooth.copy()
         f_other = f_env.copy()
         f_other[self._dofs] -= self.robot.gear * d.actuator_force[self._act]
         if self._rk4:
             f_other -= self._stiff * d.qvel
-        a_des = np.linalg.solve(M_eff, f_env)[self._dofs]
+        a_des = np.linalg.solve(M_eff, f_env)[self._dofs] if want_a_des else None
         return a_des, M_eff, f_other
 
     def torque_model(self, d: mujoco.MjData, M_eff, f_other, dt: float) -> TorqueModel:

@@ -165,8 +165,6 @@ class JointLimitShield(Wrapper):
         a_prev = self._pending
         rob, act = self.robot, self.actuation
         dofs, qadr = np.asarray(rob.dof_adr), np.asarray(rob.qpos_adr)
-        shielded = np.zeros(rob.nu, bool)
-        shielded[rob.actuator_ids] = True
         finite = jnp.isfinite(ctrl)
         ctrl_clean = jnp.where(finite, ctrl, 0.0)
         nonfinite = ~jnp.all(finite)

@@ -246,7 +246,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         V[0] = d.qvel[dofs]
         for k in range(n_frames):
             if k:
-                _, M, f = act.smooth_stage(d, ctrl)
+                _, M, f = act.smooth_stage(d, ctrl, want_a_des=False)
             inv = act.finish_substep(d, M, f, a_safe)
             Q[k] = d.qpos[qadr]
             V[k + 1] = d.qvel[dofs]
