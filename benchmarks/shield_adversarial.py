@@ -6,7 +6,7 @@ the same code), ``shield_rollout`` runs the adversarial policies (targets/torque
 bounds, lower bounds, bang-bang, random) and counts violations at every physics substep. Prints a
 table and one JSON line.
 
-    .venv/bin/python benchmarks/shield_adversarial.py [--batch 512] [--steps 200]
+    .venv/bin/python benchmarks/shield_adversarial.py [--batch 512] [--steps 200] [--env "servo Panda" ...]
 """
 
 import argparse
@@ -42,9 +42,12 @@ def main():
     p = argparse.ArgumentParser()
     p.add_argument("--batch", type=int, default=512)
     p.add_argument("--steps", type=int, default=200)
+    p.add_argument("--env", action="append", choices=list(ENVS), help="only these envs (repeatable; default all)")
     args = p.parse_args()
     rows = []
     for name, (make, kw) in ENVS.items():
+        if args.env and name not in args.env:
+            continue
         for method in SHIELDS[name]:
             env = JointLimitShield(make(), method=method, **kw)
             t = time.time()
@@ -54,6 +57,8 @@ def main():
             print(
                 f"{name:13s} {method:9s} steps {r['env_steps']:7d}  pos {r['count/position']:6d} (max {r['max/position']:.2e})"
                 f"  vel {r['count/velocity']:6d} (max {r['max/velocity']:.2e})  sat {r['count/saturated']:6d}"
+                f"  conflict {r['count/torque_conflict']:5d}  beyond {r['count/beyond_bounds']:5d}"
+                f" (max {r['max/beyond_bounds']:.2e})  nonviable {r['count/nonviable']:5d}"
                 f"  disturbed {r['count/disturbance']:6d}  undisturbed pos/vel {r['undisturbed/count/position']}/"
                 f"{r['undisturbed/count/velocity']}  accel err (undisturbed) {r['undisturbed/max/accel_error']:.2e}"
                 f"  {r['wall_s']} s",

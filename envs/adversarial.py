@@ -23,7 +23,17 @@ from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach
 from jaxlimits.envs.safety import SafetyWrapper
 
 POLICIES = ("upper", "lower", "bang_bang", "random")
-_COUNTED = ("position", "velocity", "torque", "saturated", "nonfinite", "nonviable", "disturbance", "torque_conflict")
+_COUNTED = (
+    "position",
+    "velocity",
+    "torque",
+    "saturated",
+    "nonfinite",
+    "nonviable",
+    "disturbance",
+    "torque_conflict",
+    "beyond_bounds",
+)
 
 
 def _action(kind, signs, period, t, key):
@@ -85,7 +95,7 @@ def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 20
                 **{f"count/{k}": acc[f"count/{k}"] + (m[k] > 0) for k in _COUNTED},
                 **{
                     f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[k])
-                    for k in ("position", "velocity", "torque", "accel_error")
+                    for k in ("position", "velocity", "torque", "accel_error", "beyond_bounds")
                 },
                 "undisturbed/count/position": acc["undisturbed/count/position"] + (clean & (m["position"] > 0)),
                 "undisturbed/count/velocity": acc["undisturbed/count/velocity"] + (clean & (m["velocity"] > 0)),
@@ -98,7 +108,7 @@ def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 20
         zi = jnp.zeros((batch,), jnp.int32)
         zf = jnp.zeros((batch,), jnp.float32)
         acc0 = {f"count/{k}": zi for k in _COUNTED}
-        acc0.update({f"max/{k}": zf for k in ("position", "velocity", "torque", "accel_error")})
+        acc0.update({f"max/{k}": zf for k in ("position", "velocity", "torque", "accel_error", "beyond_bounds")})
         acc0.update(
             {"undisturbed/count/position": zi, "undisturbed/count/velocity": zi, "undisturbed/max/accel_error": zf}
         )

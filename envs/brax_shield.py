@@ -26,7 +26,10 @@ step's substeps [rad or m, rad/s or m/s, N m or N]) and ``state.metrics["shield/
 ``intervention`` (``max |a_safe - a_des|``), ``saturated``, ``nonfinite``, ``nonviable`` (0/1 per
 step), ``accel_error`` (``max |(v+ - v)/h - a_safe|`` over substeps and joints: contact forces,
 saturation and RK4's second-order error show here) and ``disturbance`` (largest constraint force [N m]
-on a shielded dof while inside its limits: a contact). The guarantee is exact for the model's own
+on a shielded dof while inside its limits: a contact), ``torque_conflict`` (0/1: not even the
+position/velocity/viability bounds were realisable) and ``beyond_bounds`` (how far the realised
+decision left the acceleration/jerk limit because no acceleration inside it was realisable, e.g. a
+servo that cannot hold back gravity braking harder than ``a_max`` [rad/s^2]). The guarantee is exact for the model's own
 dynamics; a contact is outside it (its force depends on the acceleration, so it is not inverted): a
 trajectory the shield kept from every disturbance never violates (measured), one pushed by a contact
 can be pushed past a limit (counted; e.g. Brax ``pusher``'s hand striking its table).
@@ -59,6 +62,7 @@ SHIELD_METRICS = VIOLATIONS + (
     "accel_error",
     "disturbance",
     "torque_conflict",
+    "beyond_bounds",
 )
 # fields a Brax env may have changed on its System after loading (read back into the MjModel copy)
 _SYNCED_FIELDS = (
@@ -205,6 +209,7 @@ class JointLimitShield(Wrapper):
         rec["nonfinite"] = dec.nonfinite | nonfinite
         rec["nonviable"] = ~jnp.all(dec.viable)
         rec["torque_conflict"] = dec.conflict
+        rec["beyond_bounds"] = SafeAcceleration.beyond_bounds(dec)
         self._outputs = (rec, dec, a_des)
         return _brax_state(self._base.sys, d_end)
 

@@ -90,11 +90,13 @@ def _zero_tally() -> dict:
         "nonviable": 0,
         "constrained": 0,
         "torque_conflict": 0,
+        "beyond_bounds": 0,
         "max_position_excess": 0.0,
         "max_velocity_excess": 0.0,
         "max_torque_excess": 0.0,
         "max_accel_error": 0.0,
         "max_intervention": 0.0,
+        "max_beyond_bounds": 0.0,
     }
 
 
@@ -264,6 +266,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
             intervention = float(np.max(np.abs(a_safe - a_des)))
         else:
             intervention = float(np.max(np.abs(a_safe - a_des), where=finite, initial=0.0))
+        lower, upper = out[n : 2 * n].astype(np.float64), out[2 * n : 3 * n].astype(np.float64)
         self._records.append(
             {
                 "position": pos,
@@ -278,8 +281,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "accel_error": accel_error,
                 "a_des": a_des,
                 "a_safe": a_safe,
-                "lower": out[n : 2 * n].astype(np.float64),
-                "upper": out[2 * n : 3 * n].astype(np.float64),
+                "lower": lower,
+                "upper": upper,
+                "beyond_bounds": max(float(np.max(np.maximum(a_safe - upper, lower - a_safe))), 0.0),
             }
         )
 
@@ -315,7 +319,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         ``intervention`` (``max |a_safe - a_des|`` over the finite entries [rad/s^2]), ``saturated``,
         ``nonfinite``, ``viable``, ``constrained``, ``torque_conflict`` (bools; ``constrained``: a contact or
         limit force acted on a shielded dof in some substep; ``torque_conflict``: no acceleration inside the
-        bounds was realisable at the step's start, see ``SafeAcceleration``), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
+        bounds' position/velocity/viability terms was realisable at the step's start, see ``SafeAcceleration``),
+        ``beyond_bounds`` (how far ``a_safe`` left ``[lower, upper]`` [rad/s^2]: the acceleration or jerk limit
+        given way where no acceleration inside it was realisable), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
         [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
         env's step runs the physics several times, the maxima/any over them (arrays: the last).
         """
@@ -326,7 +332,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
             raise RuntimeError("the wrapped env's step did not call do_simulation")
         rec = dict(recs[-1])
         for r in recs[:-1]:
-            for k in ("position", "velocity", "torque", "intervention", "accel_error"):
+            for k in ("position", "velocity", "torque", "intervention", "accel_error", "beyond_bounds"):
                 rec[k] = max(rec[k], r[k])
             for k in ("saturated", "nonfinite", "constrained", "torque_conflict"):
                 rec[k] = rec[k] or r[k]
@@ -346,6 +352,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         t["torque_conflict"] += rec["torque_conflict"]
         t["max_accel_error"] = max(t["max_accel_error"], rec["accel_error"])
         t["max_intervention"] = max(t["max_intervention"], rec["intervention"])
+        t["beyond_bounds"] += rec["beyond_bounds"] > 0.0
+        t["max_beyond_bounds"] = max(t["max_beyond_bounds"], rec["beyond_bounds"])
         return obs, reward, terminated, truncated, info
 
     def reset_tally(self) -> None:

@@ -29,6 +29,17 @@ from jaxlimits.envs.robot import Robot
 
 METHODS = ("viability", "jerk", "naive", "none")
 RK4_MARGIN = 1e-3
+BOUNDS_TOL = 1e-3  # [a_max] torque-space answers this close to the bounds are the bounds (solver roundoff)
+
+
+def _reduce(op, terms: dict, full):
+    """``op`` over the terms other than ``"acceleration"``, widened to contain ``full`` (the bounds)."""
+    out = None
+    for name, t in terms.items():
+        if name != "acceleration":
+            out = t if out is None else op(out, t)
+    wide = jnp.minimum if op is jnp.maximum else jnp.maximum
+    return full if out is None else wide(out.astype(full.dtype), full)
 
 
 class Decision(NamedTuple):
@@ -39,7 +50,7 @@ class Decision(NamedTuple):
     upper: jax.Array
     viable: jax.Array  # bool, the state was in the viability kernel
     nonfinite: jax.Array  # bool, a_des had a NaN/inf entry and braking was substituted
-    conflict: jax.Array  # bool, no acceleration inside the bounds was realisable (torque rows violated)
+    conflict: jax.Array  # bool, not even the position/velocity/viability terms were realisable (torque box held)
 
 
 class SafeAcceleration:
@@ -71,14 +82,15 @@ class SafeAcceleration:
 
     def __call__(self, q, v, a_des, a_prev=None, torque=None) -> Decision:
         """``torque``: optional ``actuation.TorqueModel`` (``tau = M a - f`` in ``[tau_lo, tau_hi]``). Then the
-        decision is made in torque space, where the realisable set is a box: ``jl.solve_box_qp`` projects
-        ``tau_des = M a_des - f`` onto ``{tau_lo <= tau <= tau_hi, lower <= M^-1 (tau + f) <= upper}`` in the
-        metric ``M^-1`` (Gauss's: the kinetic-energy distance ``(a - a_des)^T M (a - a_des)`` of the
-        accelerations; better conditioned than the Euclidean one's ``M^-2``), so ``a_safe`` is the nearest
-        realisable acceleration inside the bounds. Where none is (``Decision.conflict``), physics decides
-        what happens whatever is commanded: the torque box holds and the bounds are met with the least
-        violation. ``a_safe`` is then clipped into the bounds (exact bounds; the torque margin absorbs the
-        solver's tolerance); a non-finite solve falls back to the clip of the command (counted as a conflict)."""
+        decision is made in torque space, where the realisable set is a box (``_torque_space``):
+        ``jl.solve_box_qp`` projects ``tau_des = M a_des - f`` onto the torque box and the bounds as
+        halfspaces ``M^-1 (tau + f) <= upper`` (and ``>= lower``), in the metric ``M^-1`` (Gauss's: the
+        kinetic-energy distance ``(a - a_des)^T M (a - a_des)`` of the accelerations; better conditioned
+        than the Euclidean one's ``M^-2``), so ``a_safe`` is the nearest realisable acceleration inside the
+        bounds. Where none is, the acceleration limit gives way before the position, velocity and
+        viability terms (measured by ``beyond_bounds``); where not even those are realisable
+        (``Decision.conflict``), physics decides what happens whatever is commanded: the torque box holds
+        and the terms are met with the least violation."""
         dtype = jnp.result_type(v)
         a_max = jnp.asarray(self.limits.a_max, dtype)
         bad = ~jnp.all(jnp.isfinite(a_des), axis=-1, keepdims=True)
@@ -95,20 +107,66 @@ class SafeAcceleration:
             a_safe = jl.project_box(a_in, b.lower, b.upper, gradient=self.gradient)
             conflict = jnp.zeros(jnp.shape(v)[:-1], bool)
         else:
-            M, f = torque.M_ss, torque.f_s
-            Minv = jnp.linalg.inv(M)
-            Minv = 0.5 * (Minv + jnp.swapaxes(Minv, -1, -2))
-            a0 = (Minv @ f[..., None])[..., 0]
-            G = jnp.concatenate([Minv, -Minv], axis=-2)
-            h = jnp.concatenate([b.upper - a0, a0 - b.lower], axis=-1)
-            tau_des = (M @ a_in[..., None])[..., 0] - f
-            res = jl.solve_box_qp(tau_des, torque.tau_lo, torque.tau_hi, Minv, G=G, h=h, gradient=self.gradient)
-            a_qp = a0 + (Minv @ res.x[..., None])[..., 0]
-            # never a NaN to the simulator: a failed solve (ill-conditioned M in float32) falls back to the clip
-            ok = jnp.all(jnp.isfinite(a_qp), axis=-1, keepdims=True)
-            a_safe = jnp.clip(jnp.where(ok, a_qp, a_in), b.lower, b.upper)
-            conflict = res.infeasible | ~ok[..., 0]
+            # the safety terms: the viability family's (for "jerk" too: its kernel contains the jerk kernel,
+            # so giving way on the jerk box keeps the position and velocity limits)
+            hard = dict(kwargs, method="viability" if self.method == "jerk" else self.method)
+            hard.pop("a_prev", None)
+            a_safe, conflict = self._torque_space(a_in, b, jl.bound_terms(q_eff, v, lim, self.dt, **hard), torque)
         return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict)
+
+    def _torque_space(self, a_in, b, terms, torque):
+        """The torque-space decision (see ``__call__``) and its conflict rule; returns ``(a_safe, conflict)``.
+
+        1. ``tau_des = M a_des - f`` projected onto the torque box and the bounds as halfspaces
+           ``lower <= M^-1 (tau + f) <= upper``: where that is feasible, the answer (clipped into the bounds).
+        2. Where it is not, the acceleration limit (``a_max``, the jerk box) gives way, and only it: the
+           torque of the clipped command ``a_c`` is projected onto the box and the bounds' *safety* terms
+           (position, velocity, viability; ``hard_lo``, ``hard_up``). The typical case is physics braking
+           harder than ``a_max`` (a servo near its limit cannot hold back gravity, its target cannot pass
+           the limit), which no command prevents and which is safe; clipping step 1's least-violation
+           answer into the bounds instead saturates the actuators, whose coupling then moves the other
+           joints (measured on the servo Panda). ``SafeAcceleration.beyond_bounds`` measures it.
+        3. Where not even the safety terms are realisable (``conflict``): step 2's least violation, clipped
+           into them (best effort). A non-finite solve falls back to ``a_c`` (counted as a conflict).
+
+        Under ``vmap`` both solves run; step 2 starts at ``a_c``, realisable in most states, where it
+        stops after its first iteration."""
+        M, f = torque.M_ss, torque.f_s
+        Minv = jnp.linalg.inv(M)
+        Minv = 0.5 * (Minv + jnp.swapaxes(Minv, -1, -2))
+        a0 = (Minv @ f[..., None])[..., 0]
+        G = jnp.concatenate([Minv, -Minv], axis=-2)
+
+        def solve(a_from, lo, hi):
+            tau = (M @ a_from[..., None])[..., 0] - f
+            h = jnp.concatenate([hi - a0, a0 - lo], axis=-1)
+            res = jl.solve_box_qp(tau, torque.tau_lo, torque.tau_hi, Minv, G=G, h=h, gradient=self.gradient)
+            a = a0 + (Minv @ res.x[..., None])[..., 0]
+            # never a NaN to the simulator: a failed solve (ill-conditioned M in float32) is not used
+            ok = jnp.all(jnp.isfinite(a), axis=-1)
+            return a, res.infeasible | ~ok
+
+        a_full, fail_full = solve(a_in, b.lower, b.upper)
+        hard_up = _reduce(jnp.minimum, terms["upper"], b.upper)
+        hard_lo = _reduce(jnp.maximum, terms["lower"], b.lower)
+        a_c = jnp.clip(a_in, b.lower, b.upper)
+        a_hard, fail_hard = solve(a_c, hard_lo, hard_up)
+        a_hard = jnp.where(jnp.all(jnp.isfinite(a_hard), axis=-1, keepdims=True), a_hard, a_c)
+        # the solver's roundoff at the bounds is no giving way: within BOUNDS_TOL a_max, snapped into them
+        tol = BOUNDS_TOL * jnp.asarray(self.limits.a_max, a_hard.dtype)
+        near = (a_hard >= b.lower - tol) & (a_hard <= b.upper + tol)
+        a_hard = jnp.where(near, jnp.clip(a_hard, b.lower, b.upper), jnp.clip(a_hard, hard_lo, hard_up))
+        use_full = ~fail_full[..., None]
+        a_safe = jnp.where(use_full, jnp.clip(jnp.where(use_full, a_full, a_c), b.lower, b.upper), a_hard)
+        return a_safe, fail_full & fail_hard
+
+    @staticmethod
+    def beyond_bounds(dec: Decision):
+        """``(...)`` how far ``dec.a_safe`` lies outside ``[dec.lower, dec.upper]`` [rad/s^2]: 0 without torque
+        limits; with them, where the actuators could realise no acceleration inside the bounds (the
+        acceleration or jerk limit given way; see ``_torque_space``)."""
+        out = jnp.maximum(dec.a_safe - dec.upper, dec.lower - dec.a_safe)
+        return jnp.maximum(jnp.max(out, axis=-1), jnp.zeros((), out.dtype))
 
     def violations(self, q, v) -> dict:
         """Excess over the model's own limits at one substep's state ``(..., n)``: ``position``, ``velocity``

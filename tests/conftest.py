@@ -1,8 +1,17 @@
 """Strict test configuration: XLA flags before JAX, rank promotion raises, x64 scoped per test."""
 
+import os
+import pathlib
+
 from jaxlimits._xla_flags import set_cpu_xla_flags
 
 set_cpu_xla_flags()
+# One persistent XLA compilation cache for the session's workers and the subprocesses they start (CLI
+# runs, notebooks): many tests compile the same env steps and rollouts; a hit takes seconds, not the
+# tens of seconds of an MJX compile. Keyed by the computation, the XLA flags and the jax version; set
+# before jax is imported (environment variables reach the subprocesses too).
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(pathlib.Path(__file__).resolve().parents[1] / ".jax_cache"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1")
 
 import contextlib  # noqa: E402
 import logging  # noqa: E402

@@ -47,6 +47,12 @@ def panda_runs():
     return out
 
 
+@pytest.fixture(scope="module")
+def panda_step(panda_runs):
+    """The shielded servo Panda's single-env step, compiled once for the tests that step it by hand."""
+    return jax.jit(panda_runs["viability"][0].step)
+
+
 def test_servo_panda_reads_limits_and_servos_from_the_model(panda_runs):
     r = panda_runs["viability"][0].robot
     assert r.names == tuple(f"joint{i}" for i in range(1, 8))
@@ -61,12 +67,13 @@ def test_servo_panda_shielded_never_violates_and_unshielded_does(panda_runs):
     _, shielded = panda_runs["viability"]
     _, unshielded = panda_runs["none"]
     assert shielded["env_steps"] == BATCH * STEPS
-    for k in ("position", "velocity", "nonviable", "nonfinite"):
+    for k in ("position", "velocity", "nonviable", "nonfinite", "saturated", "torque_conflict"):
         assert shielded[f"count/{k}"] == 0, (k, shielded)
-    # the torque model is the step's start state's: a servo can still saturate briefly later in the step
-    # (counted; measured: under 1 % of the steps, all under the all-upper / all-lower policies)
-    assert shielded["count/saturated"] < 0.01 * shielded["env_steps"], shielded
-    assert np.isfinite(shielded["max/accel_error"])  # exactness: tests/test_robot.py (float64), reacher, pusher
+    # realised as decided (float32 MJX): the servos never saturate, so nothing moves the joints off a_safe
+    assert shielded["max/accel_error"] < 0.05, shielded
+    # where a servo near its limit cannot hold back gravity, the arm brakes harder than a_max (given way,
+    # measured; safe): counted apart from the violations
+    assert shielded["count/beyond_bounds"] < 0.05 * shielded["env_steps"], shielded
     assert unshielded["count/position"] + unshielded["count/velocity"] > 0, unshielded
 
 
@@ -94,45 +101,42 @@ def test_brax_pusher_exact_without_contacts_and_contacts_are_counted():
     assert r["undisturbed/count/position"] == 0 and r["undisturbed/count/velocity"] == 0, r
 
 
-def _upper_targets(env, steps=300):
-    step = jax.jit(env.step)
+def _upper_targets(env, step, steps=300, nan_every=0):
+    """Targets at the upper bounds for ``steps`` steps (every ``nan_every``-th action NaN, if given); returns
+    the start and end ``qpos`` and the largest position/velocity excess."""
     st = inside_reset(env)(jax.random.PRNGKey(3))
     q0 = np.asarray(st.pipeline_state.qpos)
     worst = 0.0
-    for _ in range(steps):
-        st = step(st, jnp.ones(env.action_size))
+    for t in range(steps):
+        nan = nan_every and t % nan_every == 0
+        st = step(st, jnp.full(env.action_size, jnp.nan) if nan else jnp.ones(env.action_size))
+        assert bool(st.metrics["shield/nonfinite"]) == bool(nan)
+        assert np.all(np.isfinite(np.asarray(st.pipeline_state.qpos)))
         worst = max(worst, float(st.info["violation"]["position"]), float(st.info["violation"]["velocity"]))
     return q0, np.asarray(st.pipeline_state.qpos), worst
 
 
-def test_targets_at_the_upper_bounds_move_the_servo_panda_toward_them(panda_runs):
+def test_targets_at_the_upper_bounds_move_the_servo_panda_toward_them(panda_runs, panda_step):
     """Not frozen. With the torque-derived a_max (worst case over sampled states: 0.05-2 rad/s^2, the
     wrists' 12 N m against the Coriolis forces of all joints at datasheet speed) every joint moves toward
     its upper limit and none violates; with the datasheet a_max the arm gets within 10 % of its range of
-    every upper limit in 3 s (the servos cannot always brake at that a_max: conflicts are counted and the
-    excess, measured, stays below 5 mrad / 0.01 rad/s)."""
+    every upper limit in 3 s, and none violates either."""
     env = panda_runs["viability"][0]
     lim = env.robot.limits
-    q0, q, worst = _upper_targets(env)
+    q0, q, worst = _upper_targets(env, panda_step)
     assert worst == 0.0
     assert np.all(q > q0 + 0.1 * (lim.q_max - q0)), (q0, q)
     fast = JointLimitShield(make_servo_panda_reach(), a_max=[15, 7.5, 10, 12.5, 15, 20, 20])
-    q0, q, worst = _upper_targets(fast)
+    q0, q, worst = _upper_targets(fast, jax.jit(fast.step))
     gap = (lim.q_max - q) / (lim.q_max - lim.q_min)
     assert np.all(gap < 0.1), gap
-    assert worst < 5e-3
+    assert worst == 0.0
 
 
-def test_nan_actions_brake_and_are_counted(panda_runs):
-    env = panda_runs["viability"][0]
-    step = jax.jit(env.step)
-    st = inside_reset(env)(jax.random.PRNGKey(4))
-    for t in range(30):
-        a = jnp.full(env.action_size, jnp.nan) if t % 3 == 0 else jnp.ones(env.action_size)
-        st = step(st, a)
-        assert bool(st.metrics["shield/nonfinite"]) == (t % 3 == 0)
-        assert np.all(np.isfinite(np.asarray(st.pipeline_state.qpos)))
-        assert float(st.info["violation"]["position"]) == 0.0 and float(st.info["violation"]["velocity"]) == 0.0
+def test_nan_actions_brake_and_are_counted(panda_runs, panda_step):
+    """Every third action NaN: braking substituted and flagged, the others counted clean, never a violation."""
+    _, _, worst = _upper_targets(panda_runs["viability"][0], panda_step, steps=30, nan_every=3)
+    assert worst == 0.0
 
 
 def test_bad_input_is_an_eager_error_naming_it():
