@@ -5,12 +5,6 @@ import pathlib
 
 from jaxlimits._xla_flags import set_cpu_xla_flags
 
-# The suite is compilation-bound (MJX steps, PPO/APG graphs, tens of seconds each to compile, then a few
-# steps run): XLA's LLVM backend at -O0 compiles them ~30 % faster (measured on tests/test_training_apg.py:
-# 179 s -> 126 s). It changes no floating-point semantics (no fast-math either way; the HLO passes are
-# the same); benchmarks and users run at XLA's default level. Reaches subprocesses through the environment.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 set_cpu_xla_flags()
 # One persistent XLA compilation cache for the session's workers and the subprocesses they start (CLI
 # runs, notebooks): many tests compile the same env steps and rollouts; a hit takes seconds, not the
