@@ -59,6 +59,7 @@ def main():
                 f"  vel {r['count/velocity']:6d} (max {r['max/velocity']:.2e})  sat {r['count/saturated']:6d}"
                 f"  conflict {r['count/torque_conflict']:5d}  beyond {r['count/beyond_bounds']:5d}"
                 f" (max {r['max/beyond_bounds']:.2e})  nonviable {r['count/nonviable']:5d}"
+                f"  corrected {r['count/contact_corrected']:5d} (max {r['max/contact_corrected']:.2e})"
                 f"  disturbed {r['count/disturbance']:6d}  undisturbed pos/vel {r['undisturbed/count/position']}/"
                 f"{r['undisturbed/count/velocity']}  accel err (undisturbed) {r['undisturbed/max/accel_error']:.2e}"
                 f"  {r['wall_s']} s",

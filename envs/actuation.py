@@ -13,9 +13,26 @@ passive forces, the other actuators, applied forces); for RK4 less ``K h v / 2``
 (``Robot.rk4_stiffness``: the springs' and servos' average change over the stages). The actuator force ``gear (gain ctrl + bias)``
 is affine in ``ctrl``, so ``ctrl = (tau / gear - bias) / gain``, then clamped to ``ctrlrange``,
 and MuJoCo clamps the force to ``forcerange``: a clamp is a *saturation*, counted with the torque
-the actuator lacked (``torque_excess`` [N m]). Contact and joint-limit constraint forces are not
-inverted (they depend on the acceleration): they act as a disturbance, measured by the realised
-acceleration error.
+the actuator lacked (``torque_excess`` [N m]).
+
+Constraint forces (contacts, joint limits, equalities) depend on the acceleration, so the formula
+above leaves them out. Where a substep has contacts and a ``band`` (the decision's bounds) is given
+(joint-limit rows are not the case: the shield keeps the joints inside their limits), the substep's
+constraint problem is solved once with that ctrl (``_constraint_stage``); the
+shielded dofs' realised acceleration ``r = M_eff^-1 (qfrc_smooth + qfrc_constraint)`` is kept where it
+lies inside the band (a push from an object is physics, not an error), and where a contact pushes it
+out of the band the actuators get the torque change that brings it back to the band's edge under the
+constraints' own response: one Newton step on the solver's piecewise-quadratic problem,
+
+    dr = G dtau,   G = M_eff^-1 M H^-1,   H = M + J^T diag(D active) J      (restricted to the shielded dofs),
+
+exact while the active constraint rows do not change (the solver's Hessian, as MJX's Newton solver
+forms it); then the substep is solved again with the corrected ctrl and integrated. Keeping every
+substep's acceleration inside the band keeps the step's limits: the position, velocity and viability
+constraints are monotone in each substep's acceleration (positive coefficients in
+``q+ = q + h v + h^2 a`` per substep), so the band computed for a held acceleration bounds any
+sequence inside it. What the actuators cannot deliver is a saturation (counted); RK4 (no constraint
+stage between its stages) is not corrected.
 
 Two implementations of the same formula: ``MjxActuation`` (JAX, MJX data; for Brax) and
 ``CActuation`` (NumPy over C MuJoCo's ``MjData``; for Gymnasium).
@@ -53,8 +70,10 @@ class TorqueModel(NamedTuple):
     tau_hi: jax.Array
 
 
-def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool):
-    """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring."""
+def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None):
+    """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring. ``dtau`` ``(n,)`` [N m]: a
+    torque added to the one realising ``a`` (the contact correction; where the actuators lack it, that is a
+    saturation, counted with the torque they lacked)."""
     dofs, other, gear, gain, bias, c_rng, f_rng = robot_arrays
     M_ss = M_eff[dofs[:, None], dofs[None, :]]
     tau = M_ss @ a - f_other[dofs]
@@ -64,6 +83,8 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool):
         M_su = M_eff[dofs[:, None], other[None, :]]
         a_u = xp.linalg.solve(M_uu, f_other[other] - M_us @ a)
         tau = tau + M_su @ a_u
+    if dtau is not None:
+        tau = tau + dtau
     b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
     force_needed = tau / gear
     ctrl_needed = (force_needed - b) / gain
@@ -74,6 +95,24 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool):
     saturated = (ctrl != ctrl_needed) | (force != force_free)
     excess = xp.where(saturated, xp.abs(gear * (force_needed - force)), 0.0)
     return ctrl, excess, saturated
+
+
+def _contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band):
+    """The torque change ``(n,)`` [N m] bringing the shielded dofs' realised acceleration back into ``band``
+    (module docstring): ``M`` ``(nv, nv)`` the mass matrix the constraint solver used, ``J`` ``(nefc, nv)``,
+    ``D_active`` ``(nefc,)`` the active rows' impedance (0 elsewhere), ``qfrc`` ``(nv,)`` qfrc_smooth +
+    qfrc_constraint of the solved substep. Returns ``(dtau, out, dqacc)``: ``out`` ``(n,)`` the excess over
+    the band before the correction (0 inside), ``dqacc`` ``(nv,)`` the change of the solver's ``qacc`` it
+    predicts (``H^-1 dtau``: the second solve's warm start). A singular response (no finite answer) gives
+    ``dtau = 0``."""
+    r = xp.linalg.solve(M_eff, qfrc)[dofs]
+    lo, hi = band
+    out = r - xp.clip(r, lo, hi)
+    H_inv = xp.linalg.inv(M + (J.T * D_active[None, :]) @ J)
+    G = xp.linalg.solve(M_eff, M @ H_inv)[dofs[:, None], dofs[None, :]]
+    dtau = -xp.linalg.solve(G, out)
+    dtau = xp.where(xp.all(xp.isfinite(dtau)) & xp.any(out != 0), dtau, 0.0)
+    return dtau, out, H_inv[:, dofs] @ dtau
 
 
 class MjxActuation:
@@ -131,28 +170,47 @@ class MjxActuation:
         lo, hi = torque_range(jnp, self._arrays, d.qpos[self.robot.qpos_adr], d.qvel[dofs], dt, a_max)
         return TorqueModel(M_eff[dofs[:, None], dofs[None, :]], f_other[dofs], *shrink(lo, hi))
 
-    def finish_substep(self, d, M_eff, f_other, a):
-        """Set the shielded ctrl realising ``a`` ``(n,)``, then actuation, constraints and the integrator.
-
-        Returns ``(d, inversion)``.
-        """
+    def _constraint_stage(self, d, ctrl):
+        """Actuation, smooth acceleration and the constraint solve at ``d``'s state with the shielded ``ctrl``."""
         sys = self.sys
-        dofs = self._arrays[0]
-        inv = Inversion(
-            *_invert(
-                jnp, self._arrays, M_eff, f_other, a, d.qpos[self.robot.qpos_adr], d.qvel[dofs], self.robot.coupled
-            )
-        )
-        d = d.replace(ctrl=d.ctrl.at[self._act].set(inv.ctrl))
+        d = d.replace(ctrl=d.ctrl.at[self._act].set(ctrl))
         d = mjx.fwd_actuation(sys, d)
         d = mjx.fwd_acceleration(sys, d)
         # mjx.forward's own test for "no constraint rows" (a shape, static under jit)
         if d._impl.efc_J.size == 0:
-            d = d.replace(qacc=d.qacc_smooth)
-        else:
-            d = mjx.solve(sys, d)
-            d = mjx.sensor_acc(sys, d)
-        return self._integrate(sys, d), inv
+            return d.replace(qacc=d.qacc_smooth)
+        return mjx.sensor_acc(sys, mjx.solve(sys, d))
+
+    def finish_substep(self, d, M_eff, f_other, a, band=None):
+        """Set the shielded ctrl realising ``a`` ``(n,)``, then actuation, constraints and the integrator;
+        with ``band = (lower, upper)`` ``(n,)`` each and contacts in the model, the contact correction
+        (module docstring).
+
+        Returns ``(d, inversion, out)``: ``out`` the excess of the uncorrected realised acceleration over
+        the band [rad/s^2] (``(n,)``, zeros without correction).
+        """
+        dofs = self._arrays[0]
+        q, v = d.qpos[self.robot.qpos_adr], d.qvel[dofs]
+
+        def invert(dtau=None):
+            return Inversion(*_invert(jnp, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau))
+
+        inv = invert()
+        dc = self._constraint_stage(d, inv.ctrl)
+        out = jnp.zeros_like(a)
+        # contacts only (a static size): the shield keeps the joints off their limits' rows, and a model
+        # without contacts pays nothing
+        if band is not None and d._impl.ncon and self._integrate is not mjx.rungekutta4:
+            impl = dc._impl
+            D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
+            M = mjx.full_m(self.sys, dc)
+            qfrc = dc.qfrc_smooth + dc.qfrc_constraint
+            dtau, out, dqacc = _contact_correction(jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band)
+            inv = invert(dtau)
+            # warm-started at the predicted answer: the solver's loop (run until a batch's slowest member is
+            # done) then stops after an iteration or two
+            dc = self._constraint_stage(d.replace(qacc_warmstart=dc.qacc + dqacc), inv.ctrl)
+        return self._integrate(self.sys, dc), inv, out
 
 
 class CActuation:
@@ -211,13 +269,53 @@ class CActuation:
         )
         return TorqueModel(M_eff[np.ix_(dofs, dofs)], f_other[dofs], *shrink(lo, hi))
 
-    def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a) -> Inversion:
-        ctrl, excess, sat = _invert(
-            np, self._arrays, M_eff, f_other, a, d.qpos[self._qadr], d.qvel[self._dofs], self.robot.coupled
-        )
+    def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a, band=None):
+        """As ``MjxActuation.finish_substep`` (``d`` advanced in place); returns ``(inversion, out)``, ``out``
+        ``(n,)`` the excess of the uncorrected realised acceleration over the band [rad/s^2], or ``None`` where
+        it lay inside (C MuJoCo runs the check only in substeps with contacts)."""
+        m = self.model
+        q, v = d.qpos[self._qadr], d.qvel[self._dofs]
+        ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled)
         d.ctrl[self._act] = ctrl
+        out = None
+        if band is not None and d.ncon and not self._rk4:
+            mujoco.mj_fwdActuation(m, d)
+            mujoco.mj_fwdAcceleration(m, d)
+            mujoco.mj_fwdConstraint(m, d)
+            qfrc = d.qfrc_smooth + d.qfrc_constraint
+            r = np.linalg.solve(M_eff, qfrc)[self._dofs]
+            if np.any((r < band[0]) | (r > band[1])):
+                dtau, out, dqacc = _contact_correction(
+                    np, self._dofs, self._full_m(d), M_eff, self._efc_jacobian(d), self._efc_d_active(d), qfrc, band
+                )
+                d.qacc_warmstart[:] = d.qacc + dqacc
+                ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
+                d.ctrl[self._act] = ctrl
         if self._rk4:
-            mujoco.mj_step(self.model, d)
+            mujoco.mj_step(m, d)
         else:
-            mujoco.mj_step2(self.model, d)
-        return Inversion(ctrl, excess, sat)
+            mujoco.mj_step2(m, d)
+        return Inversion(ctrl, excess, sat), out
+
+    def _full_m(self, d: mujoco.MjData) -> np.ndarray:
+        M = np.zeros((self.model.nv, self.model.nv))
+        mujoco.mj_fullM(self.model, d, M)
+        return M
+
+    def _efc_jacobian(self, d: mujoco.MjData) -> np.ndarray:
+        """``efc_J`` ``(nefc, nv)``, dense (C MuJoCo keeps it sparse for large models)."""
+        m, nefc = self.model, d.nefc
+        if not mujoco.mj_isSparse(m):
+            return d.efc_J[: nefc * m.nv].reshape(nefc, m.nv)
+        J = np.zeros((nefc, m.nv))
+        mujoco.mju_sparse2dense(J, d.efc_J, d.efc_J_rownnz[:nefc], d.efc_J_rowadr[:nefc], d.efc_J_colind)
+        return J
+
+    @staticmethod
+    def _efc_d_active(d: mujoco.MjData) -> np.ndarray:
+        """The impedance of the rows in the solver's quadratic (active) zone (cone rows counted with them)."""
+        state = d.efc_state[: d.nefc]
+        active = (state == mujoco.mjtConstraintState.mjCNSTRSTATE_QUADRATIC) | (
+            state == mujoco.mjtConstraintState.mjCNSTRSTATE_CONE
+        )
+        return np.where(active, d.efc_D[: d.nefc], 0.0)

@@ -23,6 +23,7 @@ from jaxlimits.envs.arm import VIOLATION_KEYS, ArmReach
 from jaxlimits.envs.safety import SafetyWrapper
 
 POLICIES = ("upper", "lower", "bang_bang", "random")
+_MAXED = ("position", "velocity", "torque", "accel_error", "beyond_bounds", "contact_corrected")
 _COUNTED = (
     "position",
     "velocity",
@@ -33,6 +34,7 @@ _COUNTED = (
     "disturbance",
     "torque_conflict",
     "beyond_bounds",
+    "contact_corrected",
 )
 
 
@@ -93,10 +95,7 @@ def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 20
             clean = ~disturbed
             acc = {
                 **{f"count/{k}": acc[f"count/{k}"] + (m[k] > 0) for k in _COUNTED},
-                **{
-                    f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[k])
-                    for k in ("position", "velocity", "torque", "accel_error", "beyond_bounds")
-                },
+                **{f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[k]) for k in _MAXED},
                 "undisturbed/count/position": acc["undisturbed/count/position"] + (clean & (m["position"] > 0)),
                 "undisturbed/count/velocity": acc["undisturbed/count/velocity"] + (clean & (m["velocity"] > 0)),
                 "undisturbed/max/accel_error": jnp.maximum(
@@ -108,7 +107,7 @@ def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 20
         zi = jnp.zeros((batch,), jnp.int32)
         zf = jnp.zeros((batch,), jnp.float32)
         acc0 = {f"count/{k}": zi for k in _COUNTED}
-        acc0.update({f"max/{k}": zf for k in ("position", "velocity", "torque", "accel_error", "beyond_bounds")})
+        acc0.update({f"max/{k}": zf for k in _MAXED})
         acc0.update(
             {"undisturbed/count/position": zi, "undisturbed/count/velocity": zi, "undisturbed/max/accel_error": zf}
         )

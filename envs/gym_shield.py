@@ -37,11 +37,15 @@ After the call ``data.ctrl`` holds the last substep's ctrl of the shielded actua
 others). The env also gets the attribute ``_shielded_by`` (one wrapper per env); nothing is restored on
 ``close``.
 
-Contact and joint-limit constraint forces are not inverted (they depend on the acceleration): they act
-on the arm as a disturbance, visible in ``accel_error``; ``info["shield"]["constrained"]`` says whether
-a constraint force acted on a shielded dof in some substep. So the guarantee holds between contacts:
-a contact can push the state out of the viability kernel and the joint past its limit (Gymnasium's
-Pusher pressing on or striking its table; ``tests/test_gym_shield.py`` measures it). Euler and
+Contact and joint-limit constraint forces depend on the acceleration, so step 4's formula leaves them
+out; ``info["shield"]["constrained"]`` says whether a constraint force acted on a shielded dof in some
+substep. Where one would push a substep's realised acceleration out of the bounds, the substep is
+corrected (``correct_contacts=True``, ``CActuation.finish_substep``: the constraint problem solved once
+with the shield's ctrl, then the actuators given the torque that holds the acceleration at the bounds'
+edge under the contact's own response; ``info["shield"]["contact_corrected"]`` how far it would have
+left them). Where the actuators lack that torque (Gymnasium's Pusher striking its table), the contact
+pushes the joint on: a saturation and, maybe, a violation, both counted (``tests/test_gym_shield.py``
+measures it). Euler and
 implicitfast realise ``a_safe`` exactly (to float64 roundoff) without constraint forces and
 saturation; RK4 holds ``ctrl`` over its four stages, so it realises the held acceleration only to
 second order in ``h`` (``robot.py``; ``SafeAcceleration`` tightens the limits for it by ``RK4_MARGIN``).
@@ -63,7 +67,7 @@ import mujoco
 import numpy as np
 
 from jaxlimits.envs.actuation import CActuation, TorqueModel
-from jaxlimits.envs.joint_shield import SafeAcceleration
+from jaxlimits.envs.joint_shield import BOUNDS_TOL, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
 VIOLATIONS = ("position", "velocity", "torque")
@@ -91,12 +95,14 @@ def _zero_tally() -> dict:
         "constrained": 0,
         "torque_conflict": 0,
         "beyond_bounds": 0,
+        "contact_corrected": 0,
         "max_position_excess": 0.0,
         "max_velocity_excess": 0.0,
         "max_torque_excess": 0.0,
         "max_accel_error": 0.0,
         "max_intervention": 0.0,
         "max_beyond_bounds": 0.0,
+        "max_contact_corrected": 0.0,
     }
 
 
@@ -111,6 +117,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         (``Robot.from_model``: else the MJCF numerics, else ``a_max`` torque-derived; ``v_max`` is
         required unless the MJCF has it).
       method: ``"viability"``, ``"jerk"``, ``"naive"`` or ``"none"`` (``joint_shield.METHODS``).
+      torque_limits: decide among the accelerations the actuators can realise (``SafeAcceleration``).
+      correct_contacts: where a contact would push a substep's realised acceleration out of the bounds, give
+        the actuators the torque that holds it at their edge (``actuation`` module docstring; one more
+        constraint solve in the substeps with contacts); counted in ``contact_corrected``.
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes:
@@ -121,7 +131,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         ``steps``, ``position_violations``, ``velocity_violations``, ``torque_violations`` (steps with
         a positive excess), ``saturated``, ``nonfinite``, ``nonviable``, ``constrained`` (steps), and
         the largest ``max_position_excess`` [rad or m], ``max_velocity_excess`` [rad/s or m/s],
-        ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2].
+        ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2],
+        and ``beyond_bounds``, ``contact_corrected`` (steps) with their largest values (``max_*``).
 
     Raises ``TypeError`` for an env that is not a MuJoCo env, ``ValueError`` (from ``Robot.from_model``
     / ``SafeAcceleration``) naming the joint, actuator or field that is missing or unsupported.
@@ -136,11 +147,13 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         j_max=None,
         method: str = "viability",
         torque_limits: bool = True,
+        correct_contacts: bool = True,
         **robot_kwargs,
     ):
         super().__init__(env)
         base = env.unwrapped
         self.torque_limits = bool(torque_limits) and method != "none"
+        self.correct_contacts = bool(correct_contacts) and method != "none"
         missing = [name for name in _REQUIRED if not hasattr(base, name)]
         if missing or not isinstance(base.model, mujoco.MjModel) or not isinstance(base.data, mujoco.MjData):
             raise TypeError(
@@ -170,6 +183,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         self._q_hi = np.where(rob.limited, np.asarray(lim.q_max, np.float64), np.inf)
         self._v_max = np.broadcast_to(np.asarray(lim.v_max, np.float64), (n,)).copy()
         self._h = float(rob.timestep)
+        # solver roundoff at the bounds is not counted as a contact correction
+        self._correct_tol = BOUNDS_TOL * np.broadcast_to(np.asarray(lim.a_max, np.float64), (n,))
         self.a_prev = np.zeros(n, np.float32)
         self.tally = _zero_tally()
         self._records = []
@@ -244,12 +259,19 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         out = np.asarray(out)
         self.a_prev = out[:n]  # a fresh host array per call
         a_safe = out[:n].astype(np.float64)
+        lower, upper = out[n : 2 * n].astype(np.float64), out[2 * n : 3 * n].astype(np.float64)
+        # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
+        band = None if not self.correct_contacts else (np.minimum(lower, a_safe), np.maximum(upper, a_safe))
 
         V[0] = d.qvel[dofs]
+        corrected = 0.0
         for k in range(n_frames):
             if k:
                 _, M, f = act.smooth_stage(d, ctrl, want_a_des=False)
-            inv = act.finish_substep(d, M, f, a_safe)
+            inv, out_k = act.finish_substep(d, M, f, a_safe, band)
+            if out_k is not None:
+                out_k = np.abs(out_k)
+                corrected = max(corrected, float(np.max(out_k, where=out_k > self._correct_tol, initial=0.0)))
             Q[k] = d.qpos[qadr]
             V[k + 1] = d.qvel[dofs]
             C[k] = d.qfrc_constraint[dofs]
@@ -266,7 +288,6 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
             intervention = float(np.max(np.abs(a_safe - a_des)))
         else:
             intervention = float(np.max(np.abs(a_safe - a_des), where=finite, initial=0.0))
-        lower, upper = out[n : 2 * n].astype(np.float64), out[2 * n : 3 * n].astype(np.float64)
         self._records.append(
             {
                 "position": pos,
@@ -279,6 +300,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "torque_conflict": bool(out[4 * n + 1] > 0.5),
                 "constrained": bool(np.any(C != 0.0)),
                 "accel_error": accel_error,
+                "contact_corrected": corrected,
                 "a_des": a_des,
                 "a_safe": a_safe,
                 "lower": lower,
@@ -321,7 +343,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         limit force acted on a shielded dof in some substep; ``torque_conflict``: no acceleration inside the
         bounds' position/velocity/viability terms was realisable at the step's start, see ``SafeAcceleration``),
         ``beyond_bounds`` (how far ``a_safe`` left ``[lower, upper]`` [rad/s^2]: the acceleration or jerk limit
-        given way where no acceleration inside it was realisable), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
+        given way where no acceleration inside it was realisable), ``contact_corrected`` (how far a contact
+        would have pushed a substep's realised acceleration out of ``[lower, upper]`` [rad/s^2] before the
+        actuators were given the torque to hold it there; ``actuation`` module docstring), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
         [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
         env's step runs the physics several times, the maxima/any over them (arrays: the last).
         """
@@ -332,7 +356,15 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
             raise RuntimeError("the wrapped env's step did not call do_simulation")
         rec = dict(recs[-1])
         for r in recs[:-1]:
-            for k in ("position", "velocity", "torque", "intervention", "accel_error", "beyond_bounds"):
+            for k in (
+                "position",
+                "velocity",
+                "torque",
+                "intervention",
+                "accel_error",
+                "beyond_bounds",
+                "contact_corrected",
+            ):
                 rec[k] = max(rec[k], r[k])
             for k in ("saturated", "nonfinite", "constrained", "torque_conflict"):
                 rec[k] = rec[k] or r[k]
@@ -354,6 +386,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         t["max_intervention"] = max(t["max_intervention"], rec["intervention"])
         t["beyond_bounds"] += rec["beyond_bounds"] > 0.0
         t["max_beyond_bounds"] = max(t["max_beyond_bounds"], rec["beyond_bounds"])
+        t["contact_corrected"] += rec["contact_corrected"] > 0.0
+        t["max_contact_corrected"] = max(t["max_contact_corrected"], rec["contact_corrected"])
         return obs, reward, terminated, truncated, info
 
     def reset_tally(self) -> None:

@@ -104,12 +104,13 @@ def test_brax_pusher_exact_without_contacts_and_contacts_are_counted():
 def _upper_targets(env, step, steps=300, nan_every=0):
     """Targets at the upper bounds for ``steps`` steps (every ``nan_every``-th action NaN, if given); returns
     the start and end ``qpos`` and the largest position/velocity excess."""
-    st = inside_reset(env)(jax.random.PRNGKey(3))
+    st = jax.jit(inside_reset(env))(jax.random.PRNGKey(3))  # compiled: MJX's reset op by op takes longer
     q0 = np.asarray(st.pipeline_state.qpos)
     worst = 0.0
     for t in range(steps):
         nan = nan_every and t % nan_every == 0
-        st = step(st, jnp.full(env.action_size, jnp.nan) if nan else jnp.ones(env.action_size))
+        # float32, not weakly typed: a weak-typed NaN action would recompile the step
+        st = step(st, jnp.full(env.action_size, jnp.nan, jnp.float32) if nan else jnp.ones(env.action_size))
         assert bool(st.metrics["shield/nonfinite"]) == bool(nan)
         assert np.all(np.isfinite(np.asarray(st.pipeline_state.qpos)))
         worst = max(worst, float(st.info["violation"]["position"]), float(st.info["violation"]["velocity"]))

@@ -58,7 +58,7 @@ def test_actuation_realises_the_acceleration_through_motors_and_servos(integrato
         a = rng.uniform(-0.3, 0.3, r.n) * r.limits.a_max
         v0 = d.qvel[r.dof_adr].copy()
         _, M, f = act.smooth_stage(d, np.zeros(m.nu))
-        inv = act.finish_substep(d, M, f, a)
+        inv, _ = act.finish_substep(d, M, f, a)
         assert not inv.saturated.any()
         worst = max(worst, np.max(np.abs((d.qvel[r.dof_adr] - v0) / m.opt.timestep - a)))
         d.qvel[r.dof_adr] *= 0.5

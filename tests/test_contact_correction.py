@@ -1,0 +1,93 @@
+"""The contact correction of ``actuation``: where a contact would push a substep's realised acceleration out of
+the decision's bounds, the actuators get the torque that holds it at the bounds' edge (one Newton step on the
+constraint solver's problem), in C MuJoCo (float64) and MJX (float32); where they lack the force, that is a
+saturation, counted with the torque they lacked. Fails without the correction (the contact's push is far
+outside the band)."""
+
+import jaxlimits.envs  # noqa: F401
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from jaxlimits.envs.actuation import CActuation, MjxActuation
+from jaxlimits.envs.robot import Robot
+
+# a sphere on two actuated slides (x, z), pressed 5 mm into the floor: the contact pushes it up and, through
+# friction, couples x; gravity off so the contact is the only disturbance
+FLOOR = """
+<mujoco><option timestep="0.002" gravity="0 0 0" integrator="{integrator}"/>
+  <worldbody>
+    <geom type="plane" size="1 1 0.1"/>
+    <body pos="0 0 0.045">
+      <joint name="x" type="slide" axis="1 0 0" range="-1 1" damping="0.5"/>
+      <joint name="z" type="slide" axis="0 0 1" range="-1 1"/>
+      <geom size="0.05" mass="1"/>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="x" ctrlrange="-1 1" gear="{gear}"/>
+    <motor joint="z" ctrlrange="-1 1" gear="{gear}"/>
+  </actuator>
+</mujoco>"""
+BAND = (np.array([-1.0, -1.0]), np.array([1.0, 1.0]))  # [m/s^2]
+A_SAFE = np.array([0.5, 0.0])  # the decision: accelerate along x, hold z
+
+
+def _model(integrator="Euler", gear=400.0):
+    mjm = mujoco.MjModel.from_xml_string(FLOOR.format(integrator=integrator, gear=gear))
+    return mjm, Robot.from_model(mjm, v_max=1.0, a_max=2.0)
+
+
+def _c_substep(mjm, robot, band):
+    d = mujoco.MjData(mjm)
+    act = CActuation(robot, mjm)
+    _, M, f = act.smooth_stage(d, np.zeros(mjm.nu))
+    v0 = d.qvel.copy()
+    inv, out = act.finish_substep(d, M, f, A_SAFE, band)
+    return (d.qvel - v0) / mjm.opt.timestep, inv, out
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast"])
+def test_c_mujoco_holds_the_band_against_a_contact(integrator):
+    mjm, robot = _model(integrator)
+    r_free, _, out_free = _c_substep(mjm, robot, None)
+    assert out_free is None and r_free[1] > 5.0  # the uncorrected push (~12 m/s^2): far above the band's 1 m/s^2
+    r, inv, out = _c_substep(mjm, robot, BAND)
+    assert out is not None and out[1] > 5.0  # measured before the correction
+    assert not np.any(inv.saturated)
+    # the corrected substep: at the band's edge on z (the contact still pushes, as far as the band allows), x
+    # kept inside the band
+    assert abs(r[1] - BAND[1][1]) < 1e-6, r
+    assert BAND[0][0] - 1e-9 <= r[0] <= BAND[1][0] + 1e-9, r
+
+
+def test_c_mujoco_counts_what_the_actuators_lack():
+    mjm, robot = _model(gear=2.0)  # 2 N: not enough to hold the sphere against the contact
+    r, inv, out = _c_substep(mjm, robot, BAND)
+    assert inv.saturated[1] and inv.torque_excess[1] > 0.0
+    assert r[1] > BAND[1][1]  # the rest of the push goes through: a violation, counted by the wrapper
+
+
+def test_mjx_agrees_with_c_mujoco():
+    mjm, robot = _model()
+    r_c, inv_c, _ = _c_substep(mjm, robot, BAND)
+    sys = mjx.put_model(mjm)
+    act = MjxActuation(robot, sys)
+
+    @jax.jit
+    @jax.numpy_rank_promotion("allow")  # MJX's collision code relies on it
+    def substep(d0):
+        d, _, M, f = act.smooth_stage(d0, d0.ctrl)
+        band = tuple(np.float32(b) for b in BAND)
+        dn, inv, out = act.finish_substep(d, M, f, A_SAFE.astype(np.float32), band)
+        return (dn.qvel - d.qvel) / mjm.opt.timestep, inv, out
+
+    r, inv, out = jax.device_get(substep(mjx.put_data(mjm, mujoco.MjData(mjm))))
+    assert out[1] > 5.0
+    assert not np.any(inv.saturated)
+    np.testing.assert_allclose(r, r_c, atol=2e-2)  # float32 over a stiff contact (D ~ 1e5)
+    assert r[1] <= BAND[1][1] + 2e-2
+    np.testing.assert_allclose(inv.ctrl, inv_c.ctrl, rtol=1e-3, atol=1e-4)
