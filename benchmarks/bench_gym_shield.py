@@ -68,9 +68,9 @@ def _breakdown(env: JointLimitShieldWrapper, actions) -> dict:
     spent = {"decision": 0.0, "smooth_stage": 0.0, "finish_substep": 0.0}
 
     def timed(name, fn):
-        def shim(*args):
+        def shim(*args, **kwargs):
             t0 = time.perf_counter()
-            out = fn(*args)
+            out = fn(*args, **kwargs)
             spent[name] += time.perf_counter() - t0
             return out
 

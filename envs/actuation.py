@@ -236,6 +236,9 @@ class CActuation:
         self._act = np.asarray(robot.actuator_ids)
         self._dofs = np.asarray(robot.dof_adr)
         self._qadr = np.asarray(robot.qpos_adr)
+        # the dofs of the kinematic trees holding the shielded joints: M is block-diagonal over trees, so a
+        # constraint row touching none of these cannot move the shielded dofs
+        self._tree_dofs = np.flatnonzero(np.isin(model.dof_treeid, model.dof_treeid[self._dofs]))
 
     def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray, want_a_des: bool = True):
         """As ``MjxActuation.smooth_stage`` (``d`` is changed in place); returns ``(a_des, M_eff, f_other)``.
@@ -272,13 +275,14 @@ class CActuation:
     def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a, band=None):
         """As ``MjxActuation.finish_substep`` (``d`` advanced in place); returns ``(inversion, out)``, ``out``
         ``(n,)`` the excess of the uncorrected realised acceleration over the band [rad/s^2], or ``None`` where
-        it lay inside (C MuJoCo runs the check only in substeps with contacts)."""
+        it lay inside (C MuJoCo runs the check only in substeps with constraint rows on the shielded joints'
+        kinematic trees, ``_rows_touch_trees``)."""
         m = self.model
         q, v = d.qpos[self._qadr], d.qvel[self._dofs]
         ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled)
         d.ctrl[self._act] = ctrl
         out = None
-        if band is not None and d.ncon and not self._rk4:
+        if band is not None and d.ncon and not self._rk4 and self._rows_touch_trees(d):
             mujoco.mj_fwdActuation(m, d)
             mujoco.mj_fwdAcceleration(m, d)
             mujoco.mj_fwdConstraint(m, d)
@@ -296,6 +300,18 @@ class CActuation:
         else:
             mujoco.mj_step2(m, d)
         return Inversion(ctrl, excess, sat), out
+
+    def _rows_touch_trees(self, d: mujoco.MjData) -> bool:
+        """Whether a constraint row of ``d`` (made by ``mj_step1``) has a Jacobian entry on the shielded joints'
+        trees. Where none has, the constraint forces leave the shielded dofs' acceleration exactly as without
+        them (e.g. Pusher-v5's object resting on its table), and the check is skipped: as in a model without
+        contacts, the realised acceleration is the inversion's."""
+        if not d.nefc:
+            return False
+        if mujoco.mj_isSparse(self.model):
+            cols = [d.efc_J_colind[a : a + k] for a, k in zip(d.efc_J_rowadr[: d.nefc], d.efc_J_rownnz[: d.nefc])]
+            return bool(np.isin(np.concatenate(cols), self._tree_dofs).any())
+        return bool(np.any(self._efc_jacobian(d)[:, self._tree_dofs]))
 
     def _full_m(self, d: mujoco.MjData) -> np.ndarray:
         M = np.zeros((self.model.nv, self.model.nv))

@@ -130,8 +130,8 @@ class SafeAcceleration:
         3. Where not even the safety terms are realisable (``conflict``): step 2's least violation, clipped
            into them (best effort). A non-finite solve falls back to ``a_c`` (counted as a conflict).
 
-        Under ``vmap`` both solves run (a batch's active-set loop runs until its slowest member is done);
-        step 2 starts at ``a_c``, realisable in most states, where it stops after its first iteration."""
+        Under ``vmap`` both solves run (a batch's active-set loop runs until its slowest member is done); for a
+        single problem step 2 runs only where step 1 failed. Step 2 starts at ``a_c``, realisable in most states, where it stops after its first iteration."""
         M, f = torque.M_ss, torque.f_s
         Minv = jnp.linalg.inv(M)
         Minv = 0.5 * (Minv + jnp.swapaxes(Minv, -1, -2))
@@ -155,8 +155,17 @@ class SafeAcceleration:
         a_full, fail_full = solve(a_in, b.lower, b.upper)
         hard_up = _reduce(jnp.minimum, terms["upper"], b.upper)
         hard_lo = _reduce(jnp.maximum, terms["lower"], b.lower)
-        a_hard, fail_hard = solve(a_c, hard_lo, hard_up)
-        a_hard = jnp.where(jnp.all(jnp.isfinite(a_hard), axis=-1, keepdims=True), a_hard, a_c)
+
+        def give_way():
+            a_hard, fail_hard = solve(a_c, hard_lo, hard_up)
+            return jnp.where(jnp.all(jnp.isfinite(a_hard), axis=-1, keepdims=True), a_hard, a_c), fail_hard
+
+        # step 2 is used only where step 1 failed: for one problem (the Gymnasium wrapper's case) a real
+        # branch skips its solve, the same answer at half the cost; under vmap both sides run
+        if jnp.ndim(fail_full) == 0:
+            a_hard, fail_hard = jax.lax.cond(fail_full, give_way, lambda: (a_c, jnp.zeros((), bool)))
+        else:
+            a_hard, fail_hard = give_way()
         # the solver's roundoff at the bounds is no giving way: within BOUNDS_TOL a_max, snapped into them
         tol = BOUNDS_TOL * jnp.asarray(self.limits.a_max, a_hard.dtype)
         near = (a_hard >= b.lower - tol) & (a_hard <= b.upper + tol)

@@ -91,3 +91,33 @@ def test_mjx_agrees_with_c_mujoco():
     np.testing.assert_allclose(r, r_c, atol=2e-2)  # float32 over a stiff contact (D ~ 1e5)
     assert r[1] <= BAND[1][1] + 2e-2
     np.testing.assert_allclose(inv.ctrl, inv_c.ctrl, rtol=1e-3, atol=1e-4)
+
+
+# the sphere lifted off the floor, and a free box resting on it: a contact, but in another kinematic tree
+TWO_TREES = FLOOR.replace('<body pos="0 0 0.045">', '<body pos="0 0 0.3">').replace(
+    "</worldbody>", '<body pos="0.5 0 0.05"><freejoint/><geom type="box" size="0.05 0.05 0.05"/></body></worldbody>'
+)
+
+
+@pytest.mark.parametrize("pressed", [False, True])
+def test_c_mujoco_checks_only_contacts_on_the_shielded_trees(pressed):
+    """A contact in another tree (the box on the floor) cannot move the shielded dofs (M is block-diagonal over
+    trees): the check is skipped and the realised acceleration is the inversion's, exactly; a contact on the
+    shielded tree is checked and corrected as above."""
+    xml = TWO_TREES.replace('<body pos="0 0 0.3">', '<body pos="0 0 0.045">') if pressed else TWO_TREES
+    mjm = mujoco.MjModel.from_xml_string(xml.format(integrator="Euler", gear=400.0))
+    robot = Robot.from_model(mjm, v_max=1.0, a_max=2.0)
+    assert robot.names == ("x", "z")
+    d = mujoco.MjData(mjm)
+    act = CActuation(robot, mjm)
+    _, M, f = act.smooth_stage(d, np.zeros(mjm.nu))
+    assert d.ncon >= 1  # the box rests on the floor in both
+    assert act._rows_touch_trees(d) == pressed
+    v0 = d.qvel[:2].copy()
+    _, out = act.finish_substep(d, M, f, A_SAFE, BAND)
+    r = (d.qvel[:2] - v0) / mjm.opt.timestep
+    if pressed:
+        assert out is not None and out[1] > 5.0 and abs(r[1] - BAND[1][1]) < 1e-6, (out, r)
+    else:
+        assert out is None
+        np.testing.assert_allclose(r, A_SAFE, atol=1e-9)
