@@ -10,8 +10,8 @@ the acceleration ``a`` when their actuators apply
 
 where ``f_other`` is ``qfrc_smooth`` without the shielded actuators' own forces (bias, gravity,
 passive forces, the other actuators, applied forces); for RK4 less ``K h v / 2``
-(``Robot.rk4_stiffness``: the springs' and servos' average change over the stages). The actuator force ``gear (gain ctrl + bias)``
-is affine in ``ctrl``, so ``ctrl = (tau / gear - bias) / gain``, then clamped to ``ctrlrange``,
+(``Robot.rk4_stiffness``: the springs' and servos' average change over the stages). The actuator
+force ``gear (gain ctrl + bias)`` is affine in ``ctrl``, so ``ctrl = (tau / gear - bias) / gain``, then clamped to ``ctrlrange``,
 and MuJoCo clamps the force to ``forcerange``: a clamp is a *saturation*, counted with the torque
 the actuator lacked (``torque_excess`` [N m]).
 
@@ -160,8 +160,11 @@ class MjxActuation:
         dofs = self._arrays[0]
         f_env = d.qfrc_smooth
         f_other = f_env.at[dofs].add(-self._arrays[2] * d.actuator_force[self._act]) - self._stiff * d.qvel
-        a_des = jnp.linalg.solve(M_eff, f_env)[dofs]
-        return d, a_des, M_eff, f_other
+        return d, self.asked_acceleration(d, M_eff), M_eff, f_other
+
+    def asked_acceleration(self, d, M_eff):
+        """``a_des`` ``(n,)``: the shielded joints' acceleration ``M_eff^-1 qfrc_smooth`` (after ``smooth_stage``)."""
+        return jnp.linalg.solve(M_eff, d.qfrc_smooth)[self._arrays[0]]
 
     def torque_model(self, d, M_eff, f_other, dt: float) -> TorqueModel:
         """The ``TorqueModel`` at ``d``'s state (after ``smooth_stage``), for a step of ``dt`` [s]."""
@@ -306,12 +309,7 @@ class CActuation:
         trees. Where none has, the constraint forces leave the shielded dofs' acceleration exactly as without
         them (e.g. Pusher-v5's object resting on its table), and the check is skipped: as in a model without
         contacts, the realised acceleration is the inversion's."""
-        if not d.nefc:
-            return False
-        if mujoco.mj_isSparse(self.model):
-            cols = [d.efc_J_colind[a : a + k] for a, k in zip(d.efc_J_rowadr[: d.nefc], d.efc_J_rownnz[: d.nefc])]
-            return bool(np.isin(np.concatenate(cols), self._tree_dofs).any())
-        return bool(np.any(self._efc_jacobian(d)[:, self._tree_dofs]))
+        return bool(d.nefc) and bool(np.any(self._efc_jacobian(d)[:, self._tree_dofs]))
 
     def _full_m(self, d: mujoco.MjData) -> np.ndarray:
         M = np.zeros((self.model.nv, self.model.nv))

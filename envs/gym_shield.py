@@ -345,8 +345,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         ``beyond_bounds`` (how far ``a_safe`` left ``[lower, upper]`` [rad/s^2]: the acceleration or jerk limit
         given way where no acceleration inside it was realisable), ``contact_corrected`` (how far a contact
         would have pushed a substep's realised acceleration out of ``[lower, upper]`` [rad/s^2] before the
-        actuators were given the torque to hold it there; ``actuation`` module docstring), ``accel_error`` (``max |(v+ - v)/h - a_safe|``
-        [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
+        actuators were given the torque to hold it there; ``actuation`` module docstring), ``accel_error``
+        (``max |(v+ - v)/h - a_safe|`` [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
         env's step runs the physics several times, the maxima/any over them (arrays: the last).
         """
         self._records = []

@@ -131,7 +131,10 @@ class SafeAcceleration:
            into them (best effort). A non-finite solve falls back to ``a_c`` (counted as a conflict).
 
         Under ``vmap`` both solves run (a batch's active-set loop runs until its slowest member is done); for a
-        single problem step 2 runs only where step 1 failed. Step 2 starts at ``a_c``, realisable in most states, where it stops after its first iteration."""
+        single problem step 2 runs only where step 1 failed. Step 2 starts at ``a_c``, realisable in most
+        states, where it stops after its first iteration. (Stacking both steps into one batched solve compiles
+        one QP program instead of two, 15 s less per shielded Brax step, but made Brax ``pusher``'s step at
+        batch 256 cost +115 % over the unwrapped env instead of +47 %, measured: not done.)"""
         M, f = torque.M_ss, torque.f_s
         Minv = jnp.linalg.inv(M)
         Minv = 0.5 * (Minv + jnp.swapaxes(Minv, -1, -2))

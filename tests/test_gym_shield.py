@@ -194,10 +194,13 @@ def test_pusher_is_not_frozen_at_its_limits():
     print(f"\nupper limits {hi}\nplain end    {ends['plain'].round(3)}\nshielded end {ends['shielded'].round(3)}")
     assert free.sum() == 6 and not free[1]  # all but the shoulder lift
     gap = np.abs(ends["shielded"] - ends["plain"])
-    # 5 % of the range for the joints that start at their upper limit (elbow and wrist flex, at 0): the hand
-    # pressing on the table moves them by up to ~3 % there, chaotically (measured: a fresh XLA compile and a
-    # cached one of the same decision differ in roundoff and end 0.3 % and 2.6 % off)
-    gone = gap <= np.maximum(0.5 * np.abs(starts["shielded"] - ends["plain"]), 0.05 * (hi - lo))
+    # 2 % of the range at most off, or half way; 5 % for the joints that start at their upper limit (elbow and
+    # wrist flex, at 0): the hand pressing on the table moves them by up to ~3 % there, chaotically (measured:
+    # a fresh XLA compile and a cached one of the same decision differ in roundoff and end 0.3 % and 2.6 % off)
+    at_limit = starts["shielded"] >= hi - 1e-3 * (hi - lo)
+    assert [rob.names[i] for i in np.flatnonzero(at_limit)] == ["r_elbow_flex_joint", "r_wrist_flex_joint"]
+    allowance = np.where(at_limit, 0.05, 0.02) * (hi - lo)
+    gone = gap <= np.maximum(0.5 * np.abs(starts["shielded"] - ends["plain"]), allowance)
     assert np.all(gone[free]), {rob.names[i]: ends["shielded"][i] for i in np.flatnonzero(free & ~gone)}
     assert np.all(ends["shielded"] <= hi + 1e-3) and np.all(ends["shielded"] >= lo - 1e-3)
 
