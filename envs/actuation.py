@@ -12,8 +12,8 @@ where ``f_other`` is ``qfrc_smooth`` without the shielded actuators' own forces 
 passive forces, the other actuators, applied forces); for RK4 less ``K h v / 2``
 (``Robot.rk4_stiffness``: the springs' and servos' average change over the stages). The actuator
 force ``gear (gain ctrl + bias)`` is affine in ``ctrl``, so ``ctrl = (tau / gear - bias) / gain``,
-then clamped to ``ctrlrange``, and MuJoCo clamps the force to ``forcerange``: a clamp is a *saturation*, counted with the torque
-the actuator lacked (``torque_excess`` [N m]).
+then clamped to ``ctrlrange``, and MuJoCo clamps the force to ``forcerange``: a clamp is a
+*saturation*, counted with the torque the actuator lacked (``torque_excess`` [N m]).
 
 Constraint forces (contacts, joint limits, equalities) depend on the acceleration, so the formula
 above leaves them out. Where a substep has contacts and a ``band`` (the decision's bounds) is given

@@ -346,8 +346,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         given way where no acceleration inside it was realisable), ``contact_corrected`` (how far a contact
         would have pushed a substep's realised acceleration out of ``[lower, upper]`` [rad/s^2] before the
         actuators were given the torque to hold it there; ``actuation`` module docstring), ``accel_error``
-        (``max |(v+ - v)/h - a_safe|`` [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)`` float64 [rad/s^2]. If the
-        env's step runs the physics several times, the maxima/any over them (arrays: the last).
+        (``max |(v+ - v)/h - a_safe|`` [rad/s^2]), and ``a_des``, ``a_safe``, ``lower``, ``upper``: ``(n,)``
+        float64 [rad/s^2]. If the env's step runs the physics several times, the maxima/any over them
+        (arrays: the last).
         """
         self._records = []
         obs, reward, terminated, truncated, info = self.env.step(action)
