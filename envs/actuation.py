@@ -145,8 +145,8 @@ class MjxActuation:
     def smooth_stage(self, d, ctrl):
         """Positions, velocities, actuation and smooth acceleration at ``d``'s state with the env's ``ctrl``.
 
-        Returns ``(d, a_des, M_eff, f_other)``: ``a_des`` ``(n,)`` the acceleration ``ctrl`` asks of the
-        shielded joints under the integrator (``M_eff^-1 qfrc_smooth``), ``M_eff`` ``(nv, nv)``.
+        Returns ``(d, M_eff, f_other)``, ``M_eff`` ``(nv, nv)``; the acceleration ``ctrl`` asks of the shielded
+        joints is ``asked_acceleration(d, M_eff)`` (only a step's first substep needs it).
         """
         sys = self.sys
         d = d.replace(ctrl=ctrl)
@@ -160,10 +160,11 @@ class MjxActuation:
         dofs = self._arrays[0]
         f_env = d.qfrc_smooth
         f_other = f_env.at[dofs].add(-self._arrays[2] * d.actuator_force[self._act]) - self._stiff * d.qvel
-        return d, self.asked_acceleration(d, M_eff), M_eff, f_other
+        return d, M_eff, f_other
 
     def asked_acceleration(self, d, M_eff):
-        """``a_des`` ``(n,)``: the shielded joints' acceleration ``M_eff^-1 qfrc_smooth`` (after ``smooth_stage``)."""
+        """``a_des`` ``(n,)``: the acceleration the env's ``ctrl`` asks of the shielded joints under the
+        integrator, ``M_eff^-1 qfrc_smooth`` (after ``smooth_stage``)."""
         return jnp.linalg.solve(M_eff, d.qfrc_smooth)[self._arrays[0]]
 
     def torque_model(self, d, M_eff, f_other, dt: float) -> TorqueModel:
@@ -244,7 +245,8 @@ class CActuation:
         self._tree_dofs = np.flatnonzero(np.isin(model.dof_treeid, model.dof_treeid[self._dofs]))
 
     def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray, want_a_des: bool = True):
-        """As ``MjxActuation.smooth_stage`` (``d`` is changed in place); returns ``(a_des, M_eff, f_other)``.
+        """As ``MjxActuation.smooth_stage`` (``d`` is changed in place) and ``asked_acceleration``; returns
+        ``(a_des, M_eff, f_other)``.
 
         ``want_a_des=False`` skips the solve for ``a_des`` (``None``): only a step's first substep needs it."""
         m = self.model

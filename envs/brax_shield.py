@@ -8,7 +8,7 @@ the shield replaces that method on the innermost env (an instance attribute shad
 ``PipelineEnv.pipeline_step``) by ``_shielded_pipeline_step``, which:
 
 1. runs the first substep's position/velocity/actuation stages with the env's ``ctrl`` and reads the
-   joint acceleration that ``ctrl`` asks for (``MjxActuation.smooth_stage``: for a servo, its
+   joint acceleration that ``ctrl`` asks for (``MjxActuation.asked_acceleration``: for a servo, its
    acceleration at the step's start state);
 2. decides the safe acceleration (``SafeAcceleration``: the bounds of ``jl.acc_bounds`` for the
    model's integrator and ``n_frames`` substeps, the projection, braking for a NaN/inf command);
@@ -218,7 +218,7 @@ class JointLimitShield(Wrapper):
         # again for the others (MJX's stages dominate the shielded step's compilation).
         def substep(carry, i):
             dd, dec, a_des = carry
-            ds, _, Ms, fs = act.smooth_stage(dd, ctrl_clean)
+            ds, Ms, fs = act.smooth_stage(dd, ctrl_clean)
             dec, a_des = jax.lax.cond(i == 0, lambda: decide(ds, Ms, fs), lambda: (dec, a_des))
             a = dec.a_safe
             # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)

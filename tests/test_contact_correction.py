@@ -80,7 +80,7 @@ def test_mjx_agrees_with_c_mujoco():
     @jax.jit
     @jax.numpy_rank_promotion("allow")  # MJX's collision code relies on it
     def substep(d0):
-        d, _, M, f = act.smooth_stage(d0, d0.ctrl)
+        d, M, f = act.smooth_stage(d0, d0.ctrl)
         band = tuple(np.float32(b) for b in BAND)
         dn, inv, out = act.finish_substep(d, M, f, A_SAFE.astype(np.float32), band)
         return (dn.qvel - d.qvel) / mjm.opt.timestep, inv, out
