@@ -18,7 +18,9 @@ box as 2n rows, ``solve_qp_primal``, tolerance 1e-5, its own relaxed-KKT gradien
 "floor" is not a solver but a lower bound for any exact dense-metric method: the clip, one
 product with ``W`` to test the clip point's KKT signs, and a diagonal step where they fail.
 "oracle" is told the float64 solution's active set and solves its one linear system (masked
-unrolled Cholesky): the least work of any exact method. Prints a table, then one ``JSON {...}`` line with every figure
+unrolled Cholesky): the least work of any exact method. "dense_vmap" / "halfspace_vmap" are the same
+projections written for one problem and ``jax.vmap``-ed (how an RL env's per-env code calls them): the QP
+joins the mapped axis to its batch, so they should cost what the batched call does. Prints a table, then one ``JSON {...}`` line with every figure
 and the ratios.
 """
 
@@ -80,6 +82,13 @@ def methods(lo, hi):
 
     def ours_half(xd, W, G, h, act):
         return jl.project_box(xd, lo, hi, W, G=G, h=h)
+
+    # the same, written per problem and vmapped (an RL env's code): the QP joins the vmapped axis to its batch
+    def ours_dense_vmap(xd, W, G, h, act):
+        return jax.vmap(lambda x, w: jl.project_box(x, lo, hi, w))(xd, W)
+
+    def ours_half_vmap(xd, W, G, h, act):
+        return jax.vmap(lambda x, w, g, hh: jl.project_box(x, lo, hi, w, G=g, h=hh))(xd, W, G, h)
 
     cd = jaxopt.BoxCDQP(tol=1e-6, maxiter=500, implicit_diff=True)
 
@@ -156,6 +165,8 @@ def methods(lo, hi):
         "clip": ours_clip,
         "dense": ours_dense,
         "halfspace": ours_half,
+        "dense_vmap": ours_dense_vmap,
+        "halfspace_vmap": ours_half_vmap,
         "BoxCDQP": boxcdqp,
         "BoxOSQP": boxosqp,
         "BoxOSQP_halfspace": boxosqp_half,
@@ -172,6 +183,8 @@ REFERENCE_OF = {
     "clip": "clip",
     "dense": "dense",
     "halfspace": "halfspace",
+    "dense_vmap": "dense",
+    "halfspace_vmap": "halfspace",
     "BoxCDQP": "dense",
     "BoxOSQP": "dense",
     "BoxOSQP_halfspace": "halfspace",
@@ -205,7 +218,8 @@ def main():
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args()
     batches = [4096] if args.quick else [1, 64, 4096, 65536]
-    names = ["clip", "floor", "oracle", "dense", "halfspace", "BoxCDQP", "qpax"] if args.quick else list(REFERENCE_OF)
+    names = ["clip", "floor", "oracle", "dense", "halfspace", "dense_vmap", "halfspace_vmap", "BoxCDQP", "qpax"]
+    names = names if args.quick else list(REFERENCE_OF)
     lo, hi = -jnp.ones(N, jnp.float32), jnp.ones(N, jnp.float32)
     fns = methods(lo, hi)
     rows, results = [], {}
@@ -227,7 +241,7 @@ def main():
             reps = 5 if (args.quick or batch >= 4096) else 30
             if name.startswith(("Box", "qpax")) and batch >= 4096:
                 reps = 2
-            if name in ("clip", "floor", "oracle", "dense", "halfspace"):
+            if name in ("clip", "floor", "oracle", "dense", "halfspace", "dense_vmap", "halfspace_vmap"):
                 reps *= 4  # cheap: more samples, a steadier median
             fwd = jax.jit(fns[name])
             t_f, m_f, x = timeit(fwd, *a32, reps=reps)
@@ -277,6 +291,10 @@ def main():
             ratios[f"{tag}oracle_over_clip_fwd_bwd@{batch}"] = r("oracle", "clip", "fwd_bwd")
             ratios[f"{tag}dense_over_oracle_fwd@{batch}"] = r("dense", "oracle", "fwd")
             ratios[f"{tag}dense_over_oracle_fwd_bwd@{batch}"] = r("dense", "oracle", "fwd_bwd")
+            ratios[f"{tag}dense_vmap_over_dense_fwd@{batch}"] = r("dense_vmap", "dense", "fwd")
+            ratios[f"{tag}dense_vmap_over_dense_fwd_bwd@{batch}"] = r("dense_vmap", "dense", "fwd_bwd")
+            ratios[f"{tag}halfspace_vmap_over_halfspace_fwd@{batch}"] = r("halfspace_vmap", "halfspace", "fwd")
+            ratios[f"{tag}halfspace_vmap_over_halfspace_fwd_bwd@{batch}"] = r("halfspace_vmap", "halfspace", "fwd_bwd")
             ratios[f"{tag}qpax_over_dense_fwd@{batch}"] = r("qpax", "dense", "fwd")
             ratios[f"{tag}qpax_over_dense_fwd_bwd@{batch}"] = r("qpax", "dense", "fwd_bwd")
             if f"qpax_halfspace@{batch}" in results:

@@ -16,6 +16,7 @@ _EXPORTS = {
     "make_planar_reach": "jaxlimits.envs.arm",
     "SafetyWrapper": "jaxlimits.envs.safety",
     "JointLimitShield": "jaxlimits.envs.brax_shield",
+    "NonFiniteActionGuard": "jaxlimits.envs.nonfinite_guard",
     "Robot": "jaxlimits.envs.robot",
     "Reach": "jaxlimits.envs.reach",
     "make_servo_panda_reach": "jaxlimits.envs.reach",

@@ -24,7 +24,9 @@ compiled once (the shielded pusher step compiles in 76 s here instead of 87 s; t
 
 The outputs of that call reach ``step`` through the trace (``_pending``/``_outputs``, set and read in
 the same call of ``step``): ``env.step`` must call ``pipeline_step`` once, outside any
-``lax.cond``/``scan`` of its own (every Brax env does; anything else raises).
+``lax.cond``/``scan`` of its own (every Brax env does; anything else raises). A ``NonFiniteActionGuard``
+outside the shield (``envs/nonfinite_guard.py``) keeps a NaN action out of the env's reward and observation
+too; the shield brakes on the step it flags.
 
 Per step: ``state.info["violation"] = {"position", "velocity", "torque"}`` (largest excess over the
 step's substeps [rad or m, rad/s or m/s, N m or N]) and ``state.metrics["shield/*"]``: the same three,
@@ -57,6 +59,7 @@ with warnings.catch_warnings():
     from brax.base import Contact, Motion, Transform
     from brax.envs.base import PipelineEnv, State, Wrapper
 
+from jaxlimits.envs import nonfinite_guard
 from jaxlimits.envs.actuation import MjxActuation
 from jaxlimits.envs.arm import _mjx_broadcasting
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, Decision, SafeAcceleration
@@ -182,12 +185,12 @@ class JointLimitShield(Wrapper):
     def _shielded_pipeline_step(self, pipeline_state, ctrl):
         if self._pending is None:
             raise RuntimeError("pipeline_step of a shielded env was called outside JointLimitShield.step")
-        a_prev = self._pending
+        a_prev, replaced = self._pending  # replaced: a NonFiniteActionGuard outside zeroed a non-finite action
         rob, act = self.robot, self.actuation
         dofs, qadr = np.asarray(rob.dof_adr), np.asarray(rob.qpos_adr)
         finite = jnp.isfinite(ctrl)
         ctrl_clean = jnp.where(finite, ctrl, 0.0)
-        nonfinite = ~jnp.all(finite)
+        nonfinite = ~jnp.all(finite) | replaced
         h = jnp.float32(rob.timestep)
         tol = jnp.asarray(BOUNDS_TOL * rob.limits.a_max, jnp.float32)
 
@@ -256,7 +259,8 @@ class JointLimitShield(Wrapper):
 
     @_mjx_broadcasting
     def step(self, state: State, action: jax.Array) -> State:
-        self._pending, self._outputs = state.info["shield_a_prev"], None
+        replaced = jnp.asarray(state.info.get(nonfinite_guard.FLAG, False), bool)
+        self._pending, self._outputs = (state.info["shield_a_prev"], replaced), None
         try:
             nstate = self.env.step(state, action)
             if self._outputs is None:

@@ -298,6 +298,7 @@ def register_envs():
 
 register_envs()
 
-__all__ = ["ArmEnv", "ArmVectorEnv", "JointLimitShieldWrapper", "register_envs"]
+__all__ = ["ArmEnv", "ArmVectorEnv", "JointLimitShieldWrapper", "NonFiniteActionGuardWrapper", "register_envs"]
 
+from jaxlimits.envs.gym_nonfinite_guard import NonFiniteActionGuardWrapper  # noqa: E402
 from jaxlimits.envs.gym_shield import JointLimitShieldWrapper  # noqa: E402

@@ -189,6 +189,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         self.tally = _zero_tally()
         self._records = []
         self._bufs = {}
+        self._brake = False  # brake_on_next_step
         base._shielded_by = self
         base.do_simulation = self._do_simulation  # the one thing taken over (an instance attribute)
 
@@ -245,7 +246,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         dofs, qadr = self._dofs, self._qadr
         Q, V, C, TE, S = self._buffers(n_frames)
         a_des, M, f = act.smooth_stage(d, ctrl)
-        if shielded_bad:
+        if shielded_bad or self._brake:
             a_des = np.full(n, np.nan)
         tm = act.torque_model(d, M, f, self._h * n_frames)
         f32 = np.float32
@@ -295,7 +296,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "torque": float(TE.max()),
                 "intervention": intervention,
                 "saturated": bool(S.any()),
-                "nonfinite": bad_in or bool(out[4 * n] > 0.5),
+                "nonfinite": bad_in or self._brake or bool(out[4 * n] > 0.5),
                 "viable": bool(np.all(out[3 * n : 4 * n] > 0.5)),
                 "torque_conflict": bool(out[4 * n + 1] > 0.5),
                 "constrained": bool(np.any(C != 0.0)),
@@ -351,7 +352,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         (arrays: the last).
         """
         self._records = []
-        obs, reward, terminated, truncated, info = self.env.step(action)
+        try:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+        finally:
+            self._brake = False
         recs, self._records = self._records, []
         if not recs:
             raise RuntimeError("the wrapped env's step did not call do_simulation")
@@ -390,6 +394,11 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         t["contact_corrected"] += rec["contact_corrected"] > 0.0
         t["max_contact_corrected"] = max(t["max_contact_corrected"], rec["contact_corrected"])
         return obs, reward, terminated, truncated, info
+
+    def brake_on_next_step(self) -> None:
+        """Substitute braking for the command of the next ``step`` (a ``NonFiniteActionGuardWrapper`` outside
+        replaced a non-finite action by zeros); counted as ``nonfinite``."""
+        self._brake = True
 
     def reset_tally(self) -> None:
         """Zero ``tally``."""

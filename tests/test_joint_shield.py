@@ -131,3 +131,32 @@ def test_nan_command_brakes_and_is_flagged(decide):
         dec = d(q, v, jnp.asarray([jnp.nan, 0.0], jnp.float32), None, t)
         assert bool(dec.nonfinite) and np.all(np.isfinite(dec.a_safe))
         np.testing.assert_allclose(dec.a_safe, -np.sign([1.0, -1.0]) * A_MAX, rtol=1e-5)
+
+
+def test_acceleration_space_first_solve_equals_the_torque_space_one(decide, monkeypatch, x64):
+    """The first solve is written in the acceleration (box: the bounds, rows: the torque limits) for speed;
+    it is the same problem as the torque-space one (same feasible set, same Gauss metric), so on random
+    states, commands and torque models (feasible, infeasible, gravity-loaded) the decision is the same."""
+    from jaxlimits.envs import joint_shield
+
+    d = decide["viability"]
+    r = np.random.default_rng(7)
+    N = 400
+    q, v = r.uniform(-1.0, 1.0, (N, 2)), r.uniform(-1.5, 1.5, (N, 2))
+    A = r.normal(size=(N, 2, 2))
+    M = A @ np.swapaxes(A, -1, -2) + 0.2 * np.eye(2)
+    f, tau_hi = r.normal(scale=3.0, size=(N, 2)), r.uniform(0.5, 6.0, (N, 2))
+    a_des = r.uniform(-8.0, 8.0, (N, 2))
+
+    def one(q, v, a, M, f, hi):
+        dec = d(q, v, a, None, TorqueModel(M, f, -hi, hi))
+        return dec.a_safe, dec.conflict, SafeAcceleration.beyond_bounds(dec)
+
+    out = {}
+    for accel_first in (True, False):
+        monkeypatch.setattr(joint_shield, "ACCEL_SPACE_FIRST", accel_first)
+        out[accel_first] = [np.asarray(x) for x in jax.jit(jax.vmap(one))(q, v, a_des, M, f, tau_hi)]
+    np.testing.assert_allclose(out[True][0], out[False][0], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(out[True][1], out[False][1])
+    gave_way = int(np.sum(out[True][2] > 0))
+    assert 0 < gave_way < N  # both branches of the decision are covered

@@ -569,3 +569,66 @@ def test_duplicate_active_rows_do_not_make_the_active_set_method_cycle(x64):
         xr = ref.solve(xd[i, s], lo[i, s], hi[i, s], W[i, s, s], G[i, :3, s], h[i, :3])
         err = np.max(np.abs(x[i, s] - xr)) / (1.0 + np.max(np.abs(xr)))
         assert not conv[i] or err <= 1e-8, (i, err)
+
+
+def test_vmap_joins_the_batch_and_equals_the_batched_solve(x64):
+    """Under ``vmap`` the solver takes the mapped axis into its batch (``qp._solve_vmap``): every field equals
+    the batched call's, with mapped and shared (broadcast) inputs, nested maps, contradicting rows (least
+    violation, flagged); the enumeration reference checks the shared-metric answers."""
+    rng = np.random.default_rng(31)
+    B, n = 24, 4
+    xd, lo, hi, W = _problems(rng, B, n, 1e3)
+    G = rng.normal(size=(B, 2, n))
+    h = rng.uniform(0.0, 1.0, size=(B, 2))
+    bad = rng.uniform(size=B) < 0.3
+    G[bad, 1], h[bad, 1] = -G[bad, 0], -h[bad, 0] - 1.0  # g x <= h and g x >= h + 1: no box point meets both
+
+    def same(a, b):
+        for name, x, y in zip(jl.BoxQPResult._fields, a, b):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-12, err_msg=name)
+
+    full = jl.solve_box_qp(xd, lo, hi, W, G=G, h=h)
+    assert np.any(bad) and np.all(np.asarray(full.infeasible)[bad])  # (other rows may miss the random box too)
+    same(jax.vmap(lambda *a: jl.solve_box_qp(*a[:4], G=a[4], h=a[5]))(xd, lo, hi, W, G, h), full)
+    same(jax.jit(jax.vmap(lambda *a: jl.solve_box_qp(*a[:4], G=a[4], h=a[5])))(xd, lo, hi, W, G, h), full)
+    # shared box and metric (not mapped: broadcast inside the rule)
+    shared = jl.solve_box_qp(xd, lo[0], hi[0], W[0])
+    same(jax.vmap(lambda x: jl.solve_box_qp(x, lo[0], hi[0], W[0]))(xd), shared)
+    lo0, hi0, W0 = (np.broadcast_to(a[0], a.shape) for a in (lo, hi, W))
+    assert _max_error(shared, xd, lo0, hi0, W0) <= 1e-8
+    # nested maps over a (4, 6) batch, and a map over a batched call
+    r = lambda a: a.reshape((4, 6) + a.shape[1:])  # noqa: E731
+    nested = jax.vmap(jax.vmap(lambda x, l, u, w: jl.solve_box_qp(x, l, u, w)))(r(xd), r(lo), r(hi), r(W))
+    same(jax.tree.map(lambda a: a.reshape((B,) + a.shape[2:]), nested), jl.solve_box_qp(xd, lo, hi, W))
+    outer = jax.vmap(lambda x, l, u, w: jl.solve_box_qp(x, l, u, w))(r(xd), r(lo), r(hi), r(W))
+    same(jax.tree.map(lambda a: a.reshape((B,) + a.shape[2:]), outer), jl.solve_box_qp(xd, lo, hi, W))
+    # the derivative under vmap (grad of each problem) equals the batched derivative
+    v = rng.normal(size=(B, n))
+    g_map = jax.vmap(jax.grad(lambda x, l, u, w, c: jnp.sum(jl.project_box(x, l, u, w) * c)))(xd, lo, hi, W, v)
+    g_all = jax.grad(lambda x: jnp.sum(jl.project_box(x, lo, hi, W) * v))(xd)
+    np.testing.assert_allclose(g_map, g_all, rtol=0, atol=1e-10)
+
+
+def test_vmap_solves_the_mapped_problems_as_one_batch(monkeypatch):
+    """The fast path sees the whole mapped batch at once (its blocks, cascade and gathers then apply), not
+    one problem at a time lifted by ``vmap`` (every problem then iterates as long as the slowest)."""
+    from jaxlimits._src import qp, qp_pdas
+
+    seen = []
+    real = qp_pdas.solve
+
+    def spy(x_des, *rest):
+        seen.append(x_des.shape)
+        return real(x_des, *rest)
+
+    monkeypatch.setattr(qp.qp_pdas, "solve", spy)
+    jax.clear_caches()
+    rng = np.random.default_rng(32)
+    xd, lo, hi, W = _problems(rng, 10, 5, 1e2)
+    # (the per-problem function is traced first, for its shapes; the call that runs is the last one traced)
+    jax.vmap(lambda x, w: jl.project_box(x, lo[0], hi[0], w))(xd, W)
+    assert seen[-1] == (10, 5), seen
+    seen.clear()
+    jax.vmap(jax.vmap(lambda x, w: jl.project_box(x, lo[0], hi[0], w)))(xd.reshape(2, 5, 5), W.reshape(2, 5, 5, 5))
+    assert seen[-1] == (10, 5), seen
+    jax.clear_caches()

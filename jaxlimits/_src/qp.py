@@ -190,6 +190,54 @@ def _attach_jvp(primals, tangents):
 _attach.defjvp(_attach_jvp, symbolic_zeros=True)
 
 
+@jax.custom_batching.custom_vmap
+def _solve(x_des, lower, upper, W, G, h, max_iter) -> qp_active_set.Result:
+    """The solution, without derivatives: the fast path, then the robust path for what it left unsettled.
+
+    Batch first in and out (``(B, n)``, ``(B, n, n)``, ...). Under ``jax.vmap`` (a policy's per-env code, the
+    shield inside a Brax env) the mapped axis joins the batch (``_solve_vmap``): one call on the whole batch,
+    so the blocks, the cascade and the robust path's gathers work on it (a plain ``vmap`` would run every
+    problem of the batch through as many iterations as its slowest one needs, in both paths). The inputs
+    carry no tangents (``stop_gradient``): the derivative is attached outside (``_attach``).
+    """
+    n, m = x_des.shape[-1], G.shape[-2]
+    B = x_des.shape[0]
+    # the fast path gets at most FAST_ITER_EXTRA + n iterations: on the shield's torque-space problems (n = 7,
+    # m = 14) it settles 99 % of the problems it ever settles within 12 and cycles on the rest (29 % of
+    # Pusher-v5's, measured with 400 iterations); those go to the robust path instead of spending max_iter
+    fast = qp_pdas.solve(x_des, lower, upper, W, G, h, jnp.minimum(max_iter, n + FAST_ITER_EXTRA))
+    nz = n + m if m >= 2 else 0
+    no = jnp.zeros((B,), bool)
+    split0 = qp_active_set.Split(
+        no,
+        jnp.zeros((B, nz), bool),
+        jnp.zeros((B, nz), bool),
+        jnp.zeros((B, n), bool),
+        jnp.zeros((B, n), bool),
+        jnp.zeros((B, m), bool),
+        jnp.zeros((B, m), bool),
+    )
+    args = (x_des, lower, upper, W, G, h)
+    fast = qp_active_set.Result(fast.x, fast.lam, fast.settled, fast.iters, fast.free, split0)
+    return _fallback(args, fast, max_iter, _chunk(B))
+
+
+@_solve.def_vmap
+def _solve_vmap(axis_size, in_batched, *args):
+    """``_solve`` under ``vmap``: the mapped axis (first) joins the batch; inputs not mapped are broadcast.
+
+    ``max_iter`` is one traced scalar per call (``solve_box_qp`` makes it a constant), never mapped.
+    """
+    *arrays, max_iter = args
+    if in_batched[-1]:
+        raise ValueError("max_iter of the box QP is one value per call; it cannot be mapped over")
+    arrays = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, b in zip(arrays, in_batched)]
+    B = arrays[0].shape[1]
+    out = _solve(*(a.reshape((axis_size * B,) + a.shape[2:]) for a in arrays), max_iter)
+    out = jax.tree.map(lambda o: o.reshape((axis_size, B) + o.shape[1:]), out)
+    return out, jax.tree.map(lambda _: True, out)
+
+
 @jax.jit
 def _dense_batched(x_des, lower, upper, W, G, h, max_iter):
     """All problems of a batch (inputs broadcast to ``batch + core`` shapes), one compiled program.
@@ -207,24 +255,7 @@ def _dense_batched(x_des, lower, upper, W, G, h, max_iter):
         lo, hi, Gp, hp, infeasible = jax.vmap(qp_active_set.pin_infeasible_rows)(lower, upper, G, h)
 
     sg = [jax.lax.stop_gradient(a) for a in (x_des, lo, hi, W, Gp, hp)]
-    # the fast path gets at most FAST_ITER_EXTRA + n iterations: on the shield's torque-space problems (n = 7,
-    # m = 14) it settles 99 % of the problems it ever settles within 12 and cycles on the rest (29 % of
-    # Pusher-v5's, measured with 400 iterations); those go to the robust path instead of spending max_iter
-    fast = qp_pdas.solve(*sg, jnp.minimum(max_iter, n + FAST_ITER_EXTRA))
-    nz = n + m if m >= 2 else 0
-    no = jnp.zeros((B,), bool)
-    split0 = qp_active_set.Split(
-        no,
-        jnp.zeros((B, nz), bool),
-        jnp.zeros((B, nz), bool),
-        jnp.zeros((B, n), bool),
-        jnp.zeros((B, n), bool),
-        jnp.zeros((B, m), bool),
-        jnp.zeros((B, m), bool),
-    )
-    res = _fallback(
-        sg, qp_active_set.Result(fast.x, fast.lam, fast.settled, fast.iters, fast.free, split0), max_iter, _chunk(B)
-    )
+    res = _solve(*sg, max_iter)
     x, lam = jax.lax.stop_gradient(res.x), jax.lax.stop_gradient(res.lam)
 
     eq = res.split.eq

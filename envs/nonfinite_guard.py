@@ -1,0 +1,50 @@
+"""``NonFiniteActionGuard``: a policy's NaN/inf action never reaches the env (Brax; one wrapper, one job).
+
+    env = NonFiniteActionGuard(JointLimitShield(brax.envs.get_environment("pusher", backend="mjx"), v_max=2.0))
+
+A shield alone keeps a NaN out of the *simulator* (it brakes on a non-finite ``ctrl``), but the env's own
+``step`` still computes its reward and observation from the action (Brax ``pusher``'s control cost is
+``sum(action^2)``): one NaN action then poisons a training batch. The guard, outermost, checks the action
+(``(..., action_size)``): where an entry is NaN/inf (or ``|x| > 1e10``, MuJoCo's bound on a valid ctrl) the
+*whole* action is replaced by zeros before the env sees it, and ``state.info[FLAG]`` is set for that step,
+so that a ``JointLimitShield`` inside substitutes the safe braking action for the zeros (counted in
+``shield/nonfinite``). Without a shield inside, zeros are what the env gets (its neutral command: no torque
+for a motor, the middle of the range for a servo). Per step ``state.metrics["nonfinite_action"]`` is 1.0
+where the action was replaced.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from brax.envs.base import State, Wrapper
+
+FLAG = "nonfinite_action"  # state.info key: this step's action was replaced (a shield inside brakes)
+MAX_ACTION = 1e10  # MuJoCo's mjMAXVAL: a larger |ctrl| is rejected by MuJoCo itself
+
+
+def bad_action(action: jax.Array) -> jax.Array:
+    """``(...)`` bool: some entry of ``action`` ``(..., k)`` is NaN, inf or larger than ``MAX_ACTION``."""
+    return ~jnp.all(jnp.abs(action) <= MAX_ACTION, axis=-1)
+
+
+class NonFiniteActionGuard(Wrapper):
+    """Replace a non-finite action by zeros before the wrapped env's ``step``; see the module docstring."""
+
+    def reset(self, rng: jax.Array) -> State:
+        state = self.env.reset(rng)
+        flag = jnp.zeros(state.reward.shape, bool)
+        return state.replace(info={**state.info, FLAG: flag}, metrics={**state.metrics, FLAG: flag.astype(jnp.float32)})
+
+    def step(self, state: State, action: jax.Array) -> State:
+        bad = bad_action(action)
+        clean = jnp.where(bad[..., None], jnp.zeros_like(action), action)
+        nstate = self.env.step(state.replace(info={**state.info, FLAG: bad}), clean)
+        return nstate.replace(
+            info={**nstate.info, FLAG: bad}, metrics={**nstate.metrics, FLAG: bad.astype(jnp.float32)}
+        )
