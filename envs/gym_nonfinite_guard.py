@@ -16,7 +16,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-from jaxlimits.envs.nonfinite_guard import MAX_ACTION
+from jaxlimits.envs.gym_shield import MJ_MAXVAL
 
 
 class NonFiniteActionGuardWrapper(gymnasium.Wrapper):
@@ -28,7 +28,7 @@ class NonFiniteActionGuardWrapper(gymnasium.Wrapper):
 
     def step(self, action):
         a = np.asarray(action)
-        bad = not bool(np.all(np.abs(a) <= MAX_ACTION))
+        bad = not bool(np.all(np.abs(a) <= MJ_MAXVAL))
         if bad:
             a = np.zeros(a.shape, a.dtype if np.issubdtype(a.dtype, np.floating) else np.float64)
             self.replaced += 1

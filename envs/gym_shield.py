@@ -71,7 +71,7 @@ from jaxlimits.envs.joint_shield import BOUNDS_TOL, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
 VIOLATIONS = ("position", "velocity", "torque")
-MJ_MAXVAL = 1e10  # MuJoCo's mjMAXVAL: mju_isBad(x) is NaN or |x| > mjMAXVAL
+MJ_MAXVAL = mujoco.mjMAXVAL  # mju_isBad(x) is NaN or |x| > mjMAXVAL (1e10)
 _REQUIRED = ("model", "data", "do_simulation", "frame_skip")
 
 

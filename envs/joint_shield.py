@@ -29,6 +29,8 @@ from jaxlimits.envs.robot import Robot
 
 METHODS = ("viability", "jerk", "naive", "none")
 RK4_MARGIN = 1e-3
+# the first (torque-aware) solve in the acceleration: the same problem as in the torque, cheaper to settle
+# (``_torque_space``); False keeps the torque-space form (the A/B of docs/shield.md and tests/test_joint_shield.py)
 ACCEL_SPACE_FIRST = True
 BOUNDS_TOL = 1e-3  # [a_max] torque-space answers this close to the bounds are the bounds (solver roundoff)
 
@@ -163,6 +165,10 @@ class SafeAcceleration:
             return a, res.infeasible | ~ok
 
         a_c = jnp.clip(a_in, b.lower, b.upper)
+        # from the command itself, not its clip: from the clip, the nearest realisable point in this metric
+        # let a light joint drift against its command (measured: Pusher-v5's shoulder pan ran to its lower
+        # limit under an all-upper action, tests/test_gym_shield.py), although that start made the batch's
+        # solves ~4x cheaper (Brax pusher, batch 256)
         if ACCEL_SPACE_FIRST:
             a_full, fail_full = solve_in_acceleration(a_in)
         else:

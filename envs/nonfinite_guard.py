@@ -19,13 +19,14 @@ import warnings
 
 import jax
 import jax.numpy as jnp
+import mujoco
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", DeprecationWarning)
     from brax.envs.base import State, Wrapper
 
 FLAG = "nonfinite_action"  # state.info key: this step's action was replaced (a shield inside brakes)
-MAX_ACTION = 1e10  # MuJoCo's mjMAXVAL: a larger |ctrl| is rejected by MuJoCo itself
+MAX_ACTION = mujoco.mjMAXVAL  # 1e10: a larger |ctrl| is rejected by MuJoCo itself
 
 
 def bad_action(action: jax.Array) -> jax.Array:
