@@ -26,6 +26,7 @@ _EXPORTS = {
     "TaskSpaceActions": "jaxlimits.envs.task_space",
     "WallStrike": "jaxlimits.envs.wall_strike",
     "make_wall_strike": "jaxlimits.envs.wall_strike",
+    "make_planar_wall_strike": "jaxlimits.envs.wall_strike",
     "ArmEnv": "jaxlimits.envs.gym",
     "ArmVectorEnv": "jaxlimits.envs.gym",
     "register_envs": "jaxlimits.envs.gym",

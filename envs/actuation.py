@@ -48,6 +48,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+import jaxlimits as jl
 from jaxlimits.envs.robot import Robot, shrink, torque_range
 
 
@@ -97,20 +98,36 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None)
     return ctrl, excess, saturated
 
 
-def _contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band):
+def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=None):
     """The torque change ``(n,)`` [N m] bringing the shielded dofs' realised acceleration back into ``band``
     (module docstring): ``M`` ``(nv, nv)`` the mass matrix the constraint solver used, ``J`` ``(nefc, nv)``,
     ``D_active`` ``(nefc,)`` the active rows' impedance (0 elsewhere), ``qfrc`` ``(nv,)`` qfrc_smooth +
     qfrc_constraint of the solved substep. Returns ``(dtau, out, dqacc)``: ``out`` ``(n,)`` the excess over
     the band before the correction (0 inside), ``dqacc`` ``(nv,)`` the change of the solver's ``qacc`` it
     predicts (``H^-1 dtau``: the second solve's warm start). A singular response (no finite answer) gives
-    ``dtau = 0``."""
+    ``dtau = 0``.
+
+    ``torque_box = (dtau_lo, dtau_hi)`` ``(n,)`` each (JAX only): the torque change the actuators can still
+    add. Then ``dtau`` is the least change (relative to each range) inside that box that puts every shielded
+    dof's acceleration inside the band, ``lo - r <= G dtau <= hi - r``: the dofs already inside may move
+    within it, so a joint whose motor is too weak to hold a contact's push is relieved by the others
+    (pushing less into the contact); where no torque in the box does it, the box holds and the band is
+    missed least (``jl.solve_box_qp``). Without it, ``dtau = -G^-1 out`` (the others' accelerations kept)."""
     r = xp.linalg.solve(M_eff, qfrc)[dofs]
     lo, hi = band
     out = r - xp.clip(r, lo, hi)
     H_inv = xp.linalg.inv(M + (J.T * D_active[None, :]) @ J)
     G = xp.linalg.solve(M_eff, M @ H_inv)[dofs[:, None], dofs[None, :]]
-    dtau = -xp.linalg.solve(G, out)
+    if torque_box is None:
+        dtau = -xp.linalg.solve(G, out)
+    else:
+        t_lo, t_hi = torque_box
+        scale = xp.maximum(t_hi - t_lo, 1e-9)
+        rows = xp.concatenate([G, -G], axis=0)
+        # the band widened by the roundoff of r: a dof inside it stays inside
+        h = xp.concatenate([hi - r, r - lo]) + 1e-6 * (1.0 + xp.abs(xp.concatenate([hi, lo])))
+        zero = xp.zeros_like(r)
+        dtau = jl.solve_box_qp(zero, xp.minimum(t_lo, 0.0), xp.maximum(t_hi, 0.0), 1.0 / scale**2, G=rows, h=h).x
     dtau = xp.where(xp.all(xp.isfinite(dtau)) & xp.any(out != 0), dtau, 0.0)
     return dtau, out, H_inv[:, dofs] @ dtau
 
@@ -209,7 +226,7 @@ class MjxActuation:
             D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
             M = mjx.full_m(self.sys, dc)
             qfrc = dc.qfrc_smooth + dc.qfrc_constraint
-            dtau, out, dqacc = _contact_correction(jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band)
+            dtau, out, dqacc = contact_correction(jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band)
             inv = invert(dtau)
             # warm-started at the predicted answer: the solver's loop (run until a batch's slowest member is
             # done) then stops after an iteration or two
@@ -294,7 +311,7 @@ class CActuation:
             qfrc = d.qfrc_smooth + d.qfrc_constraint
             r = np.linalg.solve(M_eff, qfrc)[self._dofs]
             if np.any((r < band[0]) | (r > band[1])):
-                dtau, out, dqacc = _contact_correction(
+                dtau, out, dqacc = contact_correction(
                     np, self._dofs, self._full_m(d), M_eff, self._efc_jacobian(d), self._efc_d_active(d), qfrc, band
                 )
                 d.qacc_warmstart[:] = d.qacc + dqacc

@@ -42,7 +42,8 @@ import jaxlimits.torque as _torque
 ASSETS = pathlib.Path(__file__).parent / "assets"
 PRECISION_SCALE = 0.05  # [m], length scale of the optional precision reward (ArmReach(precision_reward=w))
 IK_DAMPING = 0.05  # [m], damping of the optional IK observation (ArmReach(ik_observation=True))
-VIOLATION_KEYS = ("position", "velocity", "acceleration", "jerk", "torque")
+# "impact": a strike whose measured impulsive joint torque exceeds its bound (WallStrike; 0 without contacts)
+VIOLATION_KEYS = ("position", "velocity", "acceleration", "jerk", "torque", "impact")
 _SEMI_IMPLICIT = (mujoco.mjtIntegrator.mjINT_EULER, mujoco.mjtIntegrator.mjINT_IMPLICITFAST)
 
 
@@ -298,8 +299,12 @@ class ArmReach(Env):
         return d, (d.qpos, d.qvel, d.qacc, tau)
 
     @_mjx_broadcasting
-    def step_acc(self, state: State, a: jax.Array) -> State:
-        """One control step of ``frame_skip`` substeps with joint acceleration ``a`` [rad/s^2] held."""
+    def step_acc(self, state: State, a: jax.Array, band=None) -> State:
+        """One control step of ``frame_skip`` substeps with joint acceleration ``a`` [rad/s^2] held.
+
+        ``band``: the shield's bounds, for envs with contacts (``WallStrike``); unused here (no contacts:
+        ``a`` is realised exactly)."""
+        del band
         a = self._f32(a)
         d0 = state.pipeline_state
         d, (qs, vs, accs, taus) = jax.lax.scan(lambda dd, _: self._substep(dd, a), d0, None, length=self.frame_skip)
@@ -335,6 +340,7 @@ class ArmReach(Env):
             if lim.j_max is not None
             else zero,
             "torque": excess(jnp.abs(taus) - f(self.tau_max)[None]),
+            "impact": zero,  # no contacts here (WallStrike measures its strikes)
         }
         d0 = state.pipeline_state
         model = jl.integrate_step(d0.qpos, d0.qvel, a, self.dt, "semi_implicit", self.frame_skip)

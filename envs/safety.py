@@ -47,6 +47,7 @@ import jaxlimits.torque as _torque
 from jaxlimits.envs.arm import ArmReach, State, Wrapper
 
 METHODS = ("none", "clip", "naive", "viability", "jerk")
+BOUND_METHODS = ("naive", "viability", "jerk")  # the methods whose bounds a contact must not push the joints out of
 
 
 def project(a_des, lower, upper, gradient: str = "exact"):
@@ -295,7 +296,9 @@ class SafetyWrapper(Wrapper):
 
     def finish(self, state: State, a_des, a_safe, b, extra=None) -> State:
         """Step the env with ``a_safe`` and record the shield's metrics (shared by ``step`` and rollouts)."""
-        nstate = self.env.step_acc(state, a_safe)
+        # envs with contacts keep every substep's realised acceleration inside the bounds where the motors can
+        band = (jnp.minimum(b.lower, a_safe), jnp.maximum(b.upper, a_safe)) if self.method in BOUND_METHODS else None
+        nstate = self.env.step_acc(state, a_safe, band)
         metrics = dict(nstate.metrics)
         # a replaced non-finite command counts in nonfinite_action, not as an (infinite) intervention
         metrics["intervention"] = jnp.max(jnp.where(jnp.isfinite(a_des), jnp.abs(a_safe - a_des), 0.0), axis=-1)

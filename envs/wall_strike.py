@@ -1,8 +1,10 @@
-"""Wall strike (Panda, MJX): reach and press a wall whose position along a known normal is uncertain.
+"""Wall strike (MJX): reach and press a wall whose position along a known normal is uncertain.
 
-The scene is ``assets/panda.xml`` plus, built with ``mujoco.MjSpec`` (no copy of the arm's MJCF):
-a collision sphere on the end effector (``ee_ball``, radius ``ball_radius``) and a wall, a plane on
-a mocap body whose normal faces the robot. The strike direction ``normal`` (unit, from the robot
+Two arms: the Panda (``make_wall_strike``, ``assets/panda.xml``) and the planar 3-link arm
+(``make_planar_wall_strike``, ``assets/planar3.xml``: fast enough to *train* on a CPU). The scene is
+the arm's MJCF plus, built with ``mujoco.MjSpec`` (no copy of the arm's MJCF): a collision sphere at
+the end-effector site (``ee_ball``, radius ``ball_radius``) and a wall, a plane on a mocap body whose
+normal faces the robot. The strike direction ``normal`` (unit, from the robot
 into the wall) is known; the wall's distance along it is drawn per episode
 (``gap`` in ``[gap_low, gap_high]`` ahead of the ball). Only the ball and the wall collide; the
 joint-limit constraint stays disabled (overshoot is measured, as in ``ArmReach``).
@@ -25,6 +27,11 @@ it is one 2 ms substep in practice. Over it the contact joint impulse ``sum(qfrc
 tau_imp_max_j`` (the measured impulsive torque over its bound; the rigid model's ``dtau = M dq /
 dt_impact`` is the same quantity), ``impact/tau_contact`` (the same with the contact impulse alone),
 ``impact/v_post`` = ``max_j max_{t >= impact} |qvel_j| / v_max_j``; a ratio > 1 is a violation.
+Each strike is counted once, in the step its window closes: ``strike`` (1.0 then), ``strike_ratio``
+(its ``impact/tau_contact``), and the violation metrics ``count/impact`` / ``violation/impact`` (the
+ratio's excess over 1), which ``training/tally.py`` and the evaluator count like every limit. The
+record restarts at every episode's first step (``time == 0``: also after Brax's auto-reset, which
+restores the reset's physics state but not ``info``). ``success`` is 1.0 once the wall was struck.
 
 Reward: ``-distance`` to the wall before contact, ``+ contact_bonus`` per step in contact, and the
 normal impulse delivered in the step, clipped to ``impulse_limit`` [N s] per step.
@@ -44,9 +51,14 @@ import numpy as np
 from mujoco import mjx
 
 import jaxlimits.impact as _impact
+from jaxlimits.envs.actuation import contact_correction
 from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_broadcasting
+from jaxlimits.envs.safety import BOUND_METHODS
 
 HOME = np.array([0.0, 0.0, 0.0, -1.57079, 0.0, 1.57079, -0.7853])
+# planar 3-link arm (vertical x-z plane): end effector at (0.29, 0, -0.66), moving along +x well
+# conditioned (every link has a lever arm on it)
+PLANAR_HOME = np.array([0.6, 1.0, 0.8])
 
 
 class ImpactSpec(NamedTuple):
@@ -65,21 +77,28 @@ class ImpactSpec(NamedTuple):
 
 
 @functools.lru_cache(maxsize=8)
-def wall_xml(ball_radius: float = 0.02, solref=(0.004, 1.0), friction: float = 1.0) -> str:
-    """Path of the generated scene MJCF (``panda.xml`` + ``ee_ball`` + mocap wall), cached per process."""
-    spec = mujoco.MjSpec.from_file(str(ASSETS / "panda.xml"))
-    ball = spec.body("attachment").add_geom()
+def wall_xml(ball_radius: float = 0.02, solref=(0.004, 1.0), friction: float = 1.0, arm: str = "panda.xml") -> str:
+    """Path of the generated scene MJCF (``assets/<arm>`` + ``ee_ball`` at its site ``ee`` + mocap wall),
+    cached per process."""
+    spec = mujoco.MjSpec.from_file(str(ASSETS / arm))
+    site = spec.site("ee")
+    if site is None:
+        raise ValueError(f"{arm}: no site named 'ee' (the ball is placed there)")
+    ball = site.parent.add_geom()
     ball.name, ball.type, ball.size = "ee_ball", mujoco.mjtGeom.mjGEOM_SPHERE, [ball_radius, 0, 0]
-    ball.contype, ball.conaffinity, ball.mass, ball.condim = 1, 1, 0.0, 3
+    ball.pos = list(site.pos)
+    # friction 0: a frictionless contact (condim 1, the normal force only: what the impact model predicts)
+    ball.contype, ball.conaffinity, ball.mass, ball.condim = 1, 1, 0.0, 3 if friction > 0 else 1
     ball.solref, ball.friction = list(solref), [friction, 0.005, 0.0001]
     wall = spec.worldbody.add_body()
     wall.name, wall.mocap = "wall", True
     g = wall.add_geom()
     g.name, g.type, g.size = "wall", mujoco.mjtGeom.mjGEOM_PLANE, [0.6, 0.6, 0.01]
     g.contype, g.conaffinity, g.solref, g.friction = 1, 1, list(solref), [friction, 0.005, 0.0001]
+    g.condim = ball.condim
     g.rgba = [0.3, 0.5, 0.8, 0.5]
     spec.compile()
-    path = pathlib.Path(tempfile.mkdtemp(prefix="jaxlimits_wall_")) / "panda_wall.xml"
+    path = pathlib.Path(tempfile.mkdtemp(prefix="jaxlimits_wall_")) / f"{pathlib.Path(arm).stem}_wall.xml"
     path.write_text(spec.to_xml())
     return str(path)
 
@@ -97,10 +116,12 @@ def _quat_z_to(direction) -> np.ndarray:
 
 
 class WallStrike(ArmReach):
-    """Strike and press a wall ahead of the end effector (Panda, MJX, contacts on).
+    """Strike and press a wall ahead of the end effector (MJX, contacts on).
 
     Args:
       normal: strike direction (3,), unit after normalisation (the wall's normal points back at the robot).
+      arm, home: the arm's MJCF in ``assets/`` (``load_arm``'s conventions, a site ``ee``) and its start
+        posture (n,) [rad].
       gap_low, gap_high: the wall is ``gap`` ahead of the ball's surface at reset, uniform [m].
       q_noise: initial joints are ``HOME`` + uniform(-q_noise, q_noise) [rad].
       c_range, dt_impact, tau_imp_scale, window: the impact model (``ImpactSpec``); the impulsive
@@ -127,10 +148,15 @@ class WallStrike(ArmReach):
         stop_fraction: float = 0.1,
         solref=(0.004, 1.0),
         friction: float = 1.0,
+        arm: str = "panda.xml",
+        home=HOME,
         **kwargs,
     ):
-        xml = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction))
+        xml = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction), str(arm))
         super().__init__(xml, "ee", (0.2, -0.5, 0.1), (0.9, 0.5, 0.9), target="box", **kwargs)
+        self.home = np.asarray(home, np.float64)
+        if self.home.shape != (self.n,) or not np.all(np.isfinite(self.home)):
+            raise ValueError(f"WallStrike: home must be {self.n} finite joint positions, got {home!r}")
         nrm = np.asarray(normal, np.float64)
         if nrm.shape != (3,) or not np.all(np.isfinite(nrm)) or np.linalg.norm(nrm) < 1e-9:
             raise ValueError(f"WallStrike: normal must be a non-zero 3-vector, got {normal!r}")
@@ -166,7 +192,7 @@ class WallStrike(ArmReach):
     # ---- reset --------------------------------------------------------------------------------
     def reset(self, rng: jax.Array) -> State:
         k_q, k_g = jax.random.split(rng)
-        q = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(
+        q = jnp.asarray(self.home, jnp.float32) + jax.random.uniform(
             k_q, (self.n,), jnp.float32, -self.q_noise, self.q_noise
         )
         gap = jax.random.uniform(k_g, (), jnp.float32, *self.gap)
@@ -201,6 +227,9 @@ class WallStrike(ArmReach):
                 "impact/tau_contact": zero,
                 "impact/v_post": zero,
                 "impulse": zero,
+                "strike": zero,
+                "success": zero,
+                "strike_ratio": zero,
             }
         )
         n = self.n
@@ -209,21 +238,27 @@ class WallStrike(ArmReach):
             "target": wall,
             "a_prev": zn,
             "gap": jnp.asarray(gap, jnp.float32),
-            "impact": {
-                "hit": zero,
-                "k": zero,
-                "open": jnp.ones((), jnp.float32),
-                "w": zero,
-                "q_pre": zn,
-                "v_pre": zn,
-                "impulse": zn,
-                "momentum": zn,
-                "vmax": zn,
-                "ball_prev": self._ball_center(d),
-                "w_last": zero,
-            },
+            "impact": self._fresh_impact(d),
         }
         return State(d, self._obs(d, wall), zero, zero, metrics, info)
+
+    def _fresh_impact(self, d) -> dict:
+        """The impact record of an episode that has not struck yet, at ``d`` (positions computed)."""
+        zero = jnp.zeros((), jnp.float32)
+        zn = jnp.zeros((self.n,), jnp.float32)
+        return {
+            "hit": zero,
+            "k": zero,
+            "open": jnp.ones((), jnp.float32),
+            "w": zero,
+            "q_pre": zn,
+            "v_pre": zn,
+            "impulse": zn,
+            "momentum": zn,
+            "vmax": zn,
+            "ball_prev": self._ball_center(d),
+            "w_last": zero,
+        }
 
     def _ball_center(self, d):
         return d.geom_xpos[self.ball]
@@ -240,14 +275,30 @@ class WallStrike(ArmReach):
         return M, self.ee_jacobian(q), jnp.asarray(self.normal, jnp.float32)
 
     # ---- physics with contacts ----------------------------------------------------------------
-    def _substep_contact(self, carry, a):
+    def _substep_contact(self, carry, a, band=None):
         d, imp = carry
         M, h, d = self.inverse_dynamics(d)  # fwd_position (collisions at this state) + fwd_velocity
         tau = M @ a + h
-        d = d.replace(ctrl=tau)
-        d = mjx.fwd_acceleration(self.sys, mjx.fwd_actuation(self.sys, d))
-        d = _solve(self.sys, d)
         in_contact = jnp.any(d._impl.contact.dist < 0.0)
+        d_free = d
+        d = _solve(self.sys, self._actuate(d_free, tau))
+        if band is not None:
+            # the contact correction (envs/actuation.py): where the wall pushes the realised acceleration out of
+            # the shield's band, the motors get the torque that brings it back under the contact's response
+            # (saturation = a torque violation, counted). Not in a strike (its first substep or its open
+            # window): the velocity jump is the impact cap's to bound, and pushing back would add to it.
+            impl = d._impl
+            D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
+            qfrc = d.qfrc_smooth + d.qfrc_constraint
+            tau_max = self._f32(self.tau_max)
+            applied = jnp.clip(tau, -tau_max, tau_max)  # what the motors applied in the solve (ctrlrange)
+            dtau, _, dqacc = contact_correction(
+                jnp, np.arange(self.n), M, M, impl.efc_J, D_active, qfrc, band, (-tau_max - applied, tau_max - applied)
+            )
+            striking = in_contact & ((imp["hit"] == 0) | (imp["open"] > 0))
+            dtau = jnp.where(striking, 0.0, dtau)
+            tau = jnp.where(striking, tau, applied + dtau)
+            d = _solve(self.sys, self._actuate(d_free.replace(qacc_warmstart=d.qacc + dqacc), tau))
         frc = d.qfrc_constraint
         d_act = d.qfrc_actuator
         v_before, q_before = d.qvel, d.qpos
@@ -279,14 +330,25 @@ class WallStrike(ArmReach):
         }
         return (d, new), (d.qpos, d.qvel, d.qacc, tau, in_contact.astype(jnp.float32), frc * self.h)
 
+    def _actuate(self, d, tau):
+        """The motors' ctrl ``tau`` [N m] (gear 1), then actuation and smooth acceleration (before the solve)."""
+        return mjx.fwd_acceleration(self.sys, mjx.fwd_actuation(self.sys, d.replace(ctrl=tau)))
+
     @_mjx_broadcasting
-    def step_acc(self, state: State, a: jax.Array) -> State:
-        """One control step of ``frame_skip`` substeps with joint acceleration ``a`` held; contacts on."""
+    def step_acc(self, state: State, a: jax.Array, band=None) -> State:
+        """One control step of ``frame_skip`` substeps with joint acceleration ``a`` held; contacts on.
+
+        ``band = (lower, upper)`` ``(n,)`` each [rad/s^2] (the shield's bounds): the contact correction keeps
+        every substep's realised acceleration inside it where the motors can (see ``_substep_contact``)."""
         a = self._f32(a)
         d0 = state.pipeline_state
-        imp0 = state.info["impact"]
+        # an episode's first step (d0.time == 0: reset() or Brax's AutoResetWrapper, which restores the reset's
+        # pipeline_state but not info) starts a fresh record, so that every episode's strike is measured
+        imp0 = jax.tree.map(
+            lambda fresh, kept: jnp.where(d0.time == 0, fresh, kept), self._fresh_impact(d0), state.info["impact"]
+        )
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
-            lambda c, _: self._substep_contact(c, a), (d0, imp0), None, length=self.frame_skip
+            lambda c, _: self._substep_contact(c, a, band), (d0, imp0), None, length=self.frame_skip
         )
         step_imp = jnp.sum(frcs, axis=0)
         d = mjx.fwd_position(self.sys, d)
@@ -307,6 +369,18 @@ class WallStrike(ArmReach):
         metrics["impact/tau"] = jnp.max(jnp.abs(imp["momentum"]) / spec.dt_impact / f(spec.tau_imp_max))
         metrics["impact/tau_contact"] = jnp.max(jnp.abs(imp["impulse"]) / spec.dt_impact / f(spec.tau_imp_max))
         metrics["impact/v_post"] = jnp.max(imp["vmax"] / f(lim.v_max))
+        # a strike is counted once, in the step its window closes: a violation when the impulsive joint torque
+        # of its contact impulse (J^T p / dt_impact, the paper's J^T F; the motors' own torque over the window
+        # left out) exceeds the bound (excess as a fraction of the bound)
+        closed = (imp0["open"] > 0) & (imp["open"] == 0)
+        over = jnp.where(closed, jnp.maximum(metrics["impact/tau_contact"] - 1.0, 0.0), zero)
+        metrics["violation/impact"] = over
+        metrics["count/impact"] = (over > 0).astype(jnp.float32)
+        metrics["strike"] = closed.astype(jnp.float32)
+        metrics["success"] = imp["hit"]  # the task: strike the wall (the evaluator's success)
+        metrics["strike_ratio"] = jnp.where(
+            closed, metrics["impact/tau_contact"], zero
+        )  # measured / bound, once a strike
         # normal impulse delivered this step [N s]: the wall's impulse on the ball from the joint impulse,
         # J^T p = sum(qfrc_constraint) h, solved in the least-squares sense (regularised)
         Jee = self.ee_jacobian(d0.qpos)
@@ -329,6 +403,23 @@ def _solve(m, d):
 def make_wall_strike(**kwargs) -> WallStrike:
     """The Panda wall-strike env (see ``WallStrike``)."""
     return WallStrike(**kwargs)
+
+
+PLANAR_WALL = dict(
+    arm="planar3.xml",
+    home=PLANAR_HOME,
+    normal=(1.0, 0.0, 0.0),
+    gap_low=0.05,
+    gap_high=0.25,
+    c_range=(0.0, 0.4),
+    friction=0.0,
+)
+
+
+def make_planar_wall_strike(**kwargs) -> WallStrike:
+    """The planar 3-link arm strikes a wall 5-25 cm ahead along +x (``PLANAR_WALL``, overridable; see
+    ``WallStrike``): the contact task fast enough to train on a CPU."""
+    return WallStrike(**{**PLANAR_WALL, **kwargs})
 
 
 # ---- a scripted striker (for measurements and tests) -------------------------------------------
@@ -395,7 +486,12 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
             a_safe = jnp.stack([c[0] for c in cands])[s_id]
             caps = jnp.stack([c[2].get("impact_cap", jnp.float32(jnp.inf)) for c in cands])[s_id]
             infe = jnp.stack([c[2].get("impact_infeasible", jnp.float32(0.0)) for c in cands])[s_id]
-            ns = env.step_acc(state, a_safe)
+            band = None
+            if all(w.method in BOUND_METHODS for w in shields):  # as SafetyWrapper.finish: the contact correction
+                lower = jnp.stack([c[1].lower for c in cands])[s_id]
+                upper = jnp.stack([c[1].upper for c in cands])[s_id]
+                band = (jnp.minimum(lower, a_safe), jnp.maximum(upper, a_safe))
+            ns = env.step_acc(state, a_safe, band)
             return ns, caps, infe
 
         def body(carry, _):
@@ -450,8 +546,11 @@ def rigid_prediction(env: WallStrike, q_pre, v_pre, c: float):
 
 __all__ = [
     "HOME",
+    "PLANAR_HOME",
+    "PLANAR_WALL",
     "ImpactSpec",
     "WallStrike",
+    "make_planar_wall_strike",
     "make_wall_strike",
     "rigid_prediction",
     "strike_command",

@@ -121,3 +121,38 @@ def test_c_mujoco_checks_only_contacts_on_the_shielded_trees(pressed):
     else:
         assert out is None
         np.testing.assert_allclose(r, A_SAFE, atol=1e-9)
+
+
+def test_the_torque_box_moves_the_correction_to_the_joints_that_can_give_it(x64):
+    """``contact_correction(..., torque_box=)``: a contact row couples two dofs (``H = M + J^T D J``); dof 0
+    is pushed out of its band and its motor has no torque left. The plain step asks dof 0's motor for the
+    missing torque; with the box, the answer stays inside what the motors can add and still brings both
+    realised accelerations into the band (dof 1, inside, gives way within it); a box that cannot do it
+    keeps the box and misses the band least."""
+    import jax.numpy as jnp
+
+    from jaxlimits.envs.actuation import contact_correction
+
+    M = jnp.eye(2)
+    J = jnp.array([[1.0, 1.0]])
+    D = jnp.array([4.0])
+    dofs = np.arange(2)
+    qfrc = jnp.array([3.0, 0.5])  # realised r = M^-1 qfrc = (3, 0.5)
+    band = (jnp.array([-1.0, -10.0]), jnp.array([1.0, 10.0]))
+    H_inv = np.linalg.inv(np.eye(2) + 4.0 * np.ones((2, 2)))
+    plain, out, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band)
+    np.testing.assert_allclose(out, [2.0, 0.0])
+    np.testing.assert_allclose(np.array([3.0, 0.5]) + H_inv @ np.asarray(plain), [1.0, 0.5], atol=1e-9)
+    assert plain[0] < -1.0  # dof 0's motor would have to give more than it has
+
+    box = (jnp.array([-1.0, -30.0]), jnp.array([1.0, 30.0]))
+    dtau, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=box)
+    r_new = np.array([3.0, 0.5]) + H_inv @ np.asarray(dtau)
+    assert np.all(np.asarray(dtau) >= np.asarray(box[0]) - 1e-9) and np.all(
+        np.asarray(dtau) <= np.asarray(box[1]) + 1e-9
+    )
+    assert np.all(r_new >= np.asarray(band[0]) - 1e-5) and np.all(r_new <= np.asarray(band[1]) + 1e-5), r_new
+
+    tight = (jnp.array([-0.1, -0.1]), jnp.array([0.1, 0.1]))
+    dtau, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=tight)
+    np.testing.assert_allclose(np.asarray(dtau), [-0.1, 0.1], atol=1e-6)  # the box holds: its corner nearest the band

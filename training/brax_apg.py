@@ -36,7 +36,7 @@ with warnings.catch_warnings():
     from brax.training.agents.apg import train as brax_apg_train
 
 from jaxlimits.training import checkpoint, tally
-from jaxlimits.training.brax_ppo import deterministic_policy, env_from_config, finish_run, start_run
+from jaxlimits.training.brax_ppo import brax_compat, deterministic_policy, env_from_config, finish_run, start_run
 from jaxlimits.training.config import RunConfig, from_dict
 
 
@@ -99,12 +99,7 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
                     flush=True,
                 )
 
-        # brax 0.14.2's APG still calls jax.device_put_replicated and optax.global_norm (both
-        # deprecated in the pinned versions), and its observation normaliser relies on rank
-        # promotion (our tests make each an error)
-        with warnings.catch_warnings(), jax.numpy_rank_promotion("allow"):
-            for message in ("jax.device_put_replicated is deprecated", "optax.global_norm is deprecated"):
-                warnings.filterwarnings("ignore", message, DeprecationWarning)
+        with brax_compat("optax.global_norm is deprecated"):
             _, params, _ = _train_apg(env, cfg, counts, updates, progress)
     return finish_run(cfg, run_dir, params, counts, time.perf_counter() - t0, rows)
 

@@ -13,6 +13,7 @@ of training), ``params.msgpack`` (``checkpoint.save``) and ``summary.json``.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import sys
@@ -31,38 +32,55 @@ with warnings.catch_warnings():
     from brax.training.agents.ppo import train as brax_ppo_train
 
 from jaxlimits.training import checkpoint, evaluate, tally
-from jaxlimits.training.config import RunConfig, from_dict
+from jaxlimits.training.config import CONTACT_ENVS, RunConfig, from_dict
 
 
 def make_base_env(name: str, **kwargs):
-    """The unshielded ``ArmReach`` env for a config's ``env`` name (``kwargs`` go to ``ArmReach``)."""
-    from jaxlimits.envs import make_panda_reach, make_planar_reach
+    """The unshielded env (an ``ArmReach``; ``planar_wall``: a ``WallStrike``) for a config's ``env`` name
+    (``kwargs`` go to its constructor)."""
+    from jaxlimits.envs import make_panda_reach, make_planar_reach, make_planar_wall_strike
 
-    return {"planar_reach": make_planar_reach, "panda_reach": make_panda_reach}[name](**kwargs)
+    makers = {
+        "planar_reach": make_planar_reach,
+        "panda_reach": make_panda_reach,
+        "planar_wall": make_planar_wall_strike,
+    }
+    return makers[name](**kwargs)
 
 
-def make_env(name: str, shield: str, action_mode: str = "acceleration", shield_gradient: str = "exact", **kwargs):
-    """``SafetyWrapper(ArmReach(**kwargs), method=shield, gradient=shield_gradient)`` with the
+def make_env(
+    name: str,
+    shield: str,
+    action_mode: str = "acceleration",
+    shield_gradient: str = "exact",
+    impact: bool = False,
+    **kwargs,
+):
+    """``SafetyWrapper(env(**kwargs), method=shield, gradient=shield_gradient, impact=impact)`` with the
     policy's actions meaning ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm
-    and the evaluator see."""
+    and the evaluator see. ``impact``: the impact-aware speed cap (envs with contacts)."""
     from jaxlimits.envs import SafetyWrapper
     from jaxlimits.envs.actions import with_action_mode
 
-    shielded = SafetyWrapper(make_base_env(name, **kwargs), method=shield, gradient=shield_gradient)
+    shielded = SafetyWrapper(
+        make_base_env(name, **kwargs), method=shield, gradient=shield_gradient, impact=True if impact else None
+    )
     return with_action_mode(shielded, action_mode)
 
 
 def env_from_config(cfg: RunConfig):
-    """``make_env`` with the config's env, shield, action mode, observation and reward (and, for
-    APG, the derivative of the shield its policy gradient goes through)."""
+    """``make_env`` with the config's env, shield, impact cap, action mode, observation and reward (and,
+    for APG, the derivative of the shield its policy gradient goes through)."""
     shield_gradient = cfg.apg.shield_gradient if cfg.algo == "apg" else "exact"
+    reach = {} if cfg.env in CONTACT_ENVS else {"ik_observation": cfg.ik_observation}
     return make_env(
         cfg.env,
         cfg.shield,
         cfg.action_mode,
         shield_gradient,
-        ik_observation=cfg.ik_observation,
+        impact=cfg.impact,
         precision_reward=cfg.precision_reward,
+        **reach,
     )
 
 
@@ -168,6 +186,17 @@ def finish_run(cfg: RunConfig, run_dir: Path, params, counts: tally.Tally, wall:
     return summary
 
 
+@contextlib.contextmanager
+def brax_compat(*deprecated: str):
+    """What brax 0.14.2's trainers need under the pinned versions: they call ``jax.device_put_replicated``
+    (and APG ``optax.global_norm``: pass it in ``deprecated``), deprecated there (an error where warnings
+    are errors, as in the tests), and their observation normaliser relies on rank promotion."""
+    with warnings.catch_warnings(), jax.numpy_rank_promotion("allow"):
+        for message in ("jax.device_put_replicated is deprecated", *deprecated):
+            warnings.filterwarnings("ignore", message, DeprecationWarning)
+        yield
+
+
 def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
     """Train and save; returns the summary (also written to ``run_dir/summary.json``)."""
     run_dir = start_run(cfg, run_dir)
@@ -177,28 +206,29 @@ def train(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
     p = cfg.ppo
     t0 = time.perf_counter()
     try:
-        _, params, _ = brax_ppo_train.train(
-            environment=env,
-            num_timesteps=cfg.num_timesteps,
-            episode_length=cfg.episode_length,
-            action_repeat=p.action_repeat,
-            num_envs=p.num_envs,
-            batch_size=p.batch_size,
-            num_minibatches=p.num_minibatches,
-            unroll_length=p.unroll_length,
-            num_updates_per_batch=p.num_updates_per_batch,
-            learning_rate=p.learning_rate,
-            entropy_cost=p.entropy_cost,
-            discounting=p.discounting,
-            reward_scaling=p.reward_scaling,
-            normalize_observations=p.normalize_observations,
-            num_evals=p.num_evals,
-            run_evals=False,
-            seed=cfg.seed,
-            policy_params_fn=progress,
-            wrap_env_fn=tally.wrap_for_training(counts),
-            network_factory=functools.partial(_networks, cfg),
-        )
+        with brax_compat():
+            _, params, _ = brax_ppo_train.train(
+                environment=env,
+                num_timesteps=cfg.num_timesteps,
+                episode_length=cfg.episode_length,
+                action_repeat=p.action_repeat,
+                num_envs=p.num_envs,
+                batch_size=p.batch_size,
+                num_minibatches=p.num_minibatches,
+                unroll_length=p.unroll_length,
+                num_updates_per_batch=p.num_updates_per_batch,
+                learning_rate=p.learning_rate,
+                entropy_cost=p.entropy_cost,
+                discounting=p.discounting,
+                reward_scaling=p.reward_scaling,
+                normalize_observations=p.normalize_observations,
+                num_evals=p.num_evals,
+                run_evals=False,
+                seed=cfg.seed,
+                policy_params_fn=progress,
+                wrap_env_fn=tally.wrap_for_training(counts),
+                network_factory=functools.partial(_networks, cfg),
+            )
     finally:
         progress.close()
     return finish_run(cfg, run_dir, params, counts, time.perf_counter() - t0, progress.rows)

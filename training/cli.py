@@ -3,6 +3,8 @@
 Commands:
   main         the main job: train PPO on planar reach with shield=viability and shield=none,
                evaluate both over 10^4 episodes, print the table, write plots (``make demo``)
+  contact      the contact task (planar wall strike): train PPO with and without the impact cap,
+               evaluate both over 10^4 episodes, print the table, write plots
   train        one training run from a config file (``training/configs/*.json``) and flags
   evaluate     jitted, sharded batch evaluation of a run's checkpoint or of a scripted policy
   joint-space  Del Prete 2018 Sec. V-A: naive vs viability bounds on one joint (table + PNG)
@@ -22,7 +24,7 @@ def _add_run_flags(p, default_out):
         "--config",
         help="config name in training/configs/ or a JSON path (default: <env>_<algo>, e.g. planar_reach_ppo)",
     )
-    p.add_argument("--env", choices=("planar_reach", "panda_reach"), help="override the config's env")
+    p.add_argument("--env", choices=("planar_reach", "panda_reach", "planar_wall"), help="override the config's env")
     p.add_argument("--algo", choices=("ppo", "apg"), help="override the config's algorithm")
     p.add_argument("--steps", type=int, help="override num_timesteps")
     p.add_argument("--seed", type=int, help="override the seed")
@@ -51,6 +53,11 @@ def main(argv=None) -> int:
     p_main = sub.add_parser("main", help="train with and without the shield, evaluate, compare (the main job)")
     _add_run_flags(p_main, "results/main")
     p_main.add_argument("--shields", default="viability,none", help="comma-separated shields to train")
+
+    p_contact = sub.add_parser(
+        "contact", help="the contact task: train with and without the impact cap, evaluate, compare"
+    )
+    _add_run_flags(p_contact, "results/contact")
 
     p_train = sub.add_parser("train", help="one training run")
     _add_run_flags(p_train, None)
@@ -81,6 +88,13 @@ def main(argv=None) -> int:
 
         shields = tuple(s for s in args.shields.split(",") if s)
         main_job.run(args.out, _config(args), shields=shields, show_progress=not args.no_progress)
+        print(f"wrote {args.out}/results.json, results.md, training_curves.png and runs/")
+    elif args.command == "contact":
+        from jaxlimits.training import contact_job
+
+        if args.config is None and args.env is None:
+            args.env = "planar_wall"
+        contact_job.run(args.out, _config(args), show_progress=not args.no_progress)
         print(f"wrote {args.out}/results.json, results.md, training_curves.png and runs/")
     elif args.command == "train":
         from jaxlimits.training import algos

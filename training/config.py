@@ -11,7 +11,8 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-ENVS = ("planar_reach", "panda_reach")
+ENVS = ("planar_reach", "panda_reach", "planar_wall")
+CONTACT_ENVS = ("planar_wall",)  # envs with contacts: the impact-aware speed cap applies (``impact``)
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
 ACTION_MODES = (
@@ -77,6 +78,7 @@ class RunConfig:
     action_mode: str = "acceleration"
     ik_observation: bool = False
     precision_reward: float = 0.0
+    impact: bool = False
     num_timesteps: int = 5_000_000
     episode_length: int = 200
     seed: int = 0
@@ -110,8 +112,16 @@ class RunConfig:
                 raise ValueError(f"config field {name!r} must be a positive integer, got {value!r}")
         if not (isinstance(self.precision_reward, (int, float)) and self.precision_reward >= 0):
             raise ValueError(f"config field 'precision_reward' must be a number >= 0, got {self.precision_reward!r}")
-        if not isinstance(self.ik_observation, bool):
-            raise ValueError(f"config field 'ik_observation' must be true or false, got {self.ik_observation!r}")
+        for name in ("ik_observation", "impact"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"config field {name!r} must be true or false, got {getattr(self, name)!r}")
+        if self.impact and self.env not in CONTACT_ENVS:
+            raise ValueError(f"config field 'impact' needs an env with contacts {CONTACT_ENVS}, got env {self.env!r}")
+        if self.env in CONTACT_ENVS and (self.ik_observation or self.precision_reward):
+            raise ValueError(
+                f"config fields 'ik_observation' and 'precision_reward' are reach options; env {self.env!r} has its "
+                f"own observation and reward (got {self.ik_observation!r}, {self.precision_reward!r})"
+            )
         for section in ("ppo", "apg"):
             _check_section(section, getattr(self, section))
         p = self.ppo

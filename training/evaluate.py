@@ -29,6 +29,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxlimits.envs.arm import VIOLATION_KEYS
 
 SUCCESS_RADIUS = 0.05  # [m]: an episode succeeds when its final end-effector distance is below this
+# (an env whose metrics carry "success" decides it itself: WallStrike, success = the wall was struck)
 SCRIPTED = ("toward_limit", "bang_bang", "random")
 
 
@@ -101,16 +102,20 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
             **{f"count/{k}": acc[f"count/{k}"] + m[f"count/{k}"] for k in VIOLATION_KEYS},
             **{f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[f"violation/{k}"]) for k in VIOLATION_KEYS},
             "nonfinite_actions": acc["nonfinite_actions"] + m.get("nonfinite_action", 0.0),
+            "strikes": acc["strikes"] + m.get("strike", 0.0),
+            "max_strike_ratio": jnp.maximum(acc["max_strike_ratio"], m.get("strike_ratio", 0.0)),
         }
         return (state, acc, action), None
 
     zero = jnp.zeros((), jnp.float32)
-    acc0 = {"return": zero, "intervention": zero, "nonfinite_actions": zero}
+    acc0 = {"return": zero, "intervention": zero, "nonfinite_actions": zero, "strikes": zero, "max_strike_ratio": zero}
     acc0.update({f"count/{k}": zero for k in VIOLATION_KEYS})
     acc0.update({f"max/{k}": zero for k in VIOLATION_KEYS})
     held0 = jnp.zeros((env.action_size,), jnp.float32)
     (state, acc, _), _ = jax.lax.scan(body, (state, acc0, held0), jnp.arange(episode_length))
     acc["final_distance"] = state.metrics["distance"]
+    if "success" in state.metrics:  # the env's own success (WallStrike: the wall was struck), else the distance's
+        acc["success"] = state.metrics["success"]
     acc["intervention"] = acc["intervention"] / episode_length
     return acc
 
@@ -171,7 +176,14 @@ def summarize(per_episode: dict, episode_length: int, success_radius: float = SU
         "episodes": e,
         "env_steps": e * episode_length,
         "return_mean": float(np.mean(per_episode["return"], dtype=np.float64)),
-        "success_rate": float(np.mean(per_episode["final_distance"] < success_radius)),
+        "success_rate": float(
+            np.mean(per_episode["success"] > 0.5)
+            if "success" in per_episode
+            else np.mean(per_episode["final_distance"] < success_radius)
+        ),
+        "strikes": int(np.sum(per_episode["strikes"], dtype=np.float64)),
+        # measured impulsive torque over its bound, worst strike (0 without strikes)
+        "max_strike_ratio": float(np.max(per_episode["max_strike_ratio"], initial=0.0)),
         "final_distance_mean": float(np.mean(per_episode["final_distance"], dtype=np.float64)),
         "intervention_mean": float(np.mean(per_episode["intervention"], dtype=np.float64)),
         "nonfinite_actions": int(np.sum(per_episode["nonfinite_actions"])),

@@ -25,26 +25,8 @@ def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool 
     results = {"config": cfg.to_dict(), "shields": {}}
     runs = {}
     for shield in shields:
-        run_dir = out / "runs" / shield
-        summary = algos.train(cfg.override(shield=shield), run_dir, show_progress=show_progress)
-        runs[shield] = run_dir
-        run_cfg, policy, params = algos.load_policy(run_dir)
-        env = brax_ppo.env_from_config(run_cfg)
-        row = evaluate.evaluate(
-            env,
-            policy,
-            params,
-            episodes=cfg.eval_episodes,
-            episode_length=cfg.episode_length,
-            action_repeat=cfg.action_repeat,
-            seed=cfg.seed + 1,
-        )
-        results["shields"][shield] = {
-            "training": summary["training"],
-            "training_wall_s": summary["wall_s"],
-            "training_env_steps_per_s": summary["env_steps_per_s"],
-            "evaluation": row,
-        }
+        runs[shield] = out / "runs" / shield
+        results["shields"][shield] = train_and_evaluate(cfg.override(shield=shield), runs[shield], show_progress)
     if cfg.action_mode == "velocity" and cfg.ik_observation:
         env = brax_ppo.env_from_config(cfg.override(shield="viability"))
         policy = evaluate.ik_reference_policy(env.action_size, env.limits.v_max)
@@ -52,12 +34,40 @@ def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool 
             env, policy, None, episodes=cfg.eval_episodes, episode_length=cfg.episode_length, seed=cfg.seed + 1
         )
     results["wall_s"] = time.perf_counter() - t0
-    table = format_results(results)
+    write_results(out, results, format_results(results), runs)
+    return results
+
+
+def train_and_evaluate(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
+    """Train one run from ``cfg`` into ``run_dir``, reload its checkpoint and evaluate the deterministic
+    policy with its own shield over ``cfg.eval_episodes`` episodes (seed ``cfg.seed + 1``). Returns the
+    training totals, the training wall time and env-steps/s, and the evaluation row."""
+    summary = algos.train(cfg, run_dir, show_progress=show_progress)
+    run_cfg, policy, params = algos.load_policy(run_dir)
+    row = evaluate.evaluate(
+        brax_ppo.env_from_config(run_cfg),
+        policy,
+        params,
+        episodes=cfg.eval_episodes,
+        episode_length=cfg.episode_length,
+        action_repeat=cfg.action_repeat,
+        seed=cfg.seed + 1,
+    )
+    return {
+        "training": summary["training"],
+        "training_wall_s": summary["wall_s"],
+        "training_env_steps_per_s": summary["env_steps_per_s"],
+        "evaluation": row,
+    }
+
+
+def write_results(out: Path, results: dict, table: str, runs: dict) -> None:
+    """Print ``table``; write ``results.json``, ``results.md`` and ``training_curves.png`` (one curve per run
+    folder in ``runs``: name -> folder) to ``out``."""
     print(table)
     plots.plot_runs(runs, out / "training_curves.png")
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table + "\n")
-    return results
 
 
 def format_results(results: dict) -> str:

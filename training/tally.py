@@ -29,7 +29,8 @@ from brax.envs.wrappers import training as brax_training
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
 
-COUNTS = tuple(f"count/{k}" for k in VIOLATION_KEYS) + ("nonfinite_action", "env_steps")
+# "strike": strikes measured (envs with contacts; "count/impact" those over the impulsive-torque bound)
+COUNTS = tuple(f"count/{k}" for k in VIOLATION_KEYS) + ("nonfinite_action", "strike", "env_steps")
 MAXES = tuple(f"violation/{k}" for k in VIOLATION_KEYS)
 
 
@@ -53,7 +54,11 @@ class Tally:
         return self.counts["env_steps"]
 
     def as_dict(self) -> dict:
-        out = {"env_steps": self.env_steps, "nonfinite_actions": self.counts["nonfinite_action"]}
+        out = {
+            "env_steps": self.env_steps,
+            "nonfinite_actions": self.counts["nonfinite_action"],
+            "strikes": self.counts["strike"],
+        }
         for k in VIOLATION_KEYS:
             out[f"violations/{k}"] = self.counts[f"count/{k}"]
             out[f"max_violation/{k}"] = self.maxes[f"violation/{k}"]
