@@ -294,11 +294,17 @@ class SafetyWrapper(Wrapper):
         a_safe, b, extra = self._shield(state, a_des)
         return self.finish(state, a_des, a_safe, b, extra)
 
+    def band(self, b, a_safe):
+        """``(lower, upper)``: the accelerations a contact may leave each substep at (envs with contacts keep
+        the realised acceleration inside it where the motors can), the bounds widened to hold ``a_safe``;
+        ``None`` for the methods without bounds (``none``, ``clip``)."""
+        if self.method not in BOUND_METHODS:
+            return None
+        return jnp.minimum(b.lower, a_safe), jnp.maximum(b.upper, a_safe)
+
     def finish(self, state: State, a_des, a_safe, b, extra=None) -> State:
         """Step the env with ``a_safe`` and record the shield's metrics (shared by ``step`` and rollouts)."""
-        # envs with contacts keep every substep's realised acceleration inside the bounds where the motors can
-        band = (jnp.minimum(b.lower, a_safe), jnp.maximum(b.upper, a_safe)) if self.method in BOUND_METHODS else None
-        nstate = self.env.step_acc(state, a_safe, band)
+        nstate = self.env.step_acc(state, a_safe, self.band(b, a_safe))
         metrics = dict(nstate.metrics)
         # a replaced non-finite command counts in nonfinite_action, not as an (infinite) intervention
         metrics["intervention"] = jnp.max(jnp.where(jnp.isfinite(a_des), jnp.abs(a_safe - a_des), 0.0), axis=-1)

@@ -53,7 +53,6 @@ from mujoco import mjx
 import jaxlimits.impact as _impact
 from jaxlimits.envs.actuation import contact_correction
 from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_broadcasting
-from jaxlimits.envs.safety import BOUND_METHODS
 
 HOME = np.array([0.0, 0.0, 0.0, -1.57079, 0.0, 1.57079, -0.7853])
 # planar 3-link arm (vertical x-z plane): end effector at (0.29, 0, -0.66), moving along +x well
@@ -296,7 +295,6 @@ class WallStrike(ArmReach):
                 jnp, np.arange(self.n), M, M, impl.efc_J, D_active, qfrc, band, (-tau_max - applied, tau_max - applied)
             )
             striking = in_contact & ((imp["hit"] == 0) | (imp["open"] > 0))
-            dtau = jnp.where(striking, 0.0, dtau)
             tau = jnp.where(striking, tau, applied + dtau)
             d = _solve(self.sys, self._actuate(d_free.replace(qacc_warmstart=d.qacc + dqacc), tau))
         frc = d.qfrc_constraint
@@ -486,11 +484,10 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
             a_safe = jnp.stack([c[0] for c in cands])[s_id]
             caps = jnp.stack([c[2].get("impact_cap", jnp.float32(jnp.inf)) for c in cands])[s_id]
             infe = jnp.stack([c[2].get("impact_infeasible", jnp.float32(0.0)) for c in cands])[s_id]
+            bands = [w.band(c[1], c[0]) for w, c in zip(shields, cands)]  # as SafetyWrapper.finish
             band = None
-            if all(w.method in BOUND_METHODS for w in shields):  # as SafetyWrapper.finish: the contact correction
-                lower = jnp.stack([c[1].lower for c in cands])[s_id]
-                upper = jnp.stack([c[1].upper for c in cands])[s_id]
-                band = (jnp.minimum(lower, a_safe), jnp.maximum(upper, a_safe))
+            if all(b is not None for b in bands):
+                band = tuple(jnp.stack([b[i] for b in bands])[s_id] for i in range(2))
             ns = env.step_acc(state, a_safe, band)
             return ns, caps, infe
 
