@@ -92,6 +92,9 @@ def _check(M, J, normal=None, **scalars):
     n = M.shape[-1]
     if J.ndim < 2 or J.shape[-2] not in (3, 6) or J.shape[-1] != n:
         raise ValueError(f"impact: J must be (..., 3, {n}) or (..., 6, {n}), got shape {J.shape}")
+    for name, arr in (("M", concrete(M)), ("J", concrete(J))):
+        if arr is not None and not np.all(np.isfinite(arr)):
+            raise ValueError(f"impact: {name} must be finite, got {arr[~np.isfinite(arr)][:5].tolist()}")
     if normal is not None:
         normal = jnp.asarray(normal)
         if normal.shape[-1:] != (3,):
@@ -231,7 +234,7 @@ def impact_speed_cap(
     only known to lie in this box (e.g. ``v + dt [lower, upper]`` for the next step's commands); (17)
     then holds for every velocity in it: ``-v_max - v_lo <= dq <= v_max - v_hi``.
     """
-    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg)
+    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg, tau_imp_max=tau_imp_max)
     jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg)
     dtype = jump.dq.dtype
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
@@ -247,7 +250,9 @@ def impact_speed_cap(
         lo, hi = lo_hi
         # for w >= 0 the row is slope * w; it meets hi when slope > 0 and lo when slope < 0
         room = jnp.where(slope > 0, hi, -lo)
-        room = jnp.maximum(room, 0.0)
+        # a row already violated at w = 0 (lo > 0 or hi < 0) caps the family at 0, even where the jump would
+        # move back toward the bound: the post-impact state would still be outside it
+        room = jnp.where((lo > 0) | (hi < 0), 0.0, jnp.maximum(room, 0.0))
         return jnp.min(room / jnp.maximum(jnp.abs(slope), floor), axis=-1)
 
     cp = cap_of(jump.dq_dw, pos)
@@ -267,7 +272,7 @@ def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_im
     [(16) upper, (16) lower, (17) upper, (17) lower, (20) upper, (20) lower], each block ``n`` rows
     (joint order). Ungated by the sign of ``w``, as in the paper.
     """
-    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg)
+    _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg, tau_imp_max=tau_imp_max)
     jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg)
     dtype = jump.dq.dtype
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731

@@ -71,7 +71,7 @@ import jax.numpy as jnp
 
 from jaxlimits._src.jerk_condition import check_jerk_condition
 from jaxlimits._src.joint_state import JointArrays, check_limits_type, guard_limits, inside_limits, joint_arrays
-from jaxlimits._src.limit import AccelerationLimit, Bounds, Terms, combine, toward_upper_side
+from jaxlimits._src.limit import AccelerationLimit, Bounds, Terms, combine, nan_state_rule, toward_upper_side
 from jaxlimits._src.safe_math import tiny_floor
 from jaxlimits._src.tracing import is_traced
 
@@ -350,7 +350,7 @@ _evaluate_jit = jax.jit(_evaluate, static_argnames=("model", "rounding_guard", "
 
 @functools.partial(jax.jit, static_argnames=("model", "rounding_guard"))
 def _bounds_jit(a: JointArrays, *, model, rounding_guard: bool):
-    return combine(_evaluate(a, model, rounding_guard), fuse_sides=True)
+    return nan_state_rule(combine(_evaluate(a, model, rounding_guard), fuse_sides=True), a.q, a.v, a.a_prev)
 
 
 class Jerk(AccelerationLimit):

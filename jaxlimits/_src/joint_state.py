@@ -66,7 +66,7 @@ def joint_arrays(q, v, limits: JointLimits, a_prev=None) -> JointArrays:
     )
 
 
-def guard_limits(q_min, q_max, v_max, a_max, roundings, stop_steps):
+def guard_limits(q_min, q_max, v_max, a_max, roundings, stop_steps, v_reach=None):
     """Limits tightened by the roundoff of a whole stop, so rounding cannot carry a state out.
 
     The bounds are exact in real arithmetic; a state riding one is then advanced in floating point.
@@ -83,9 +83,19 @@ def guard_limits(q_min, q_max, v_max, a_max, roundings, stop_steps):
     in by ``R eps (max|q_lim| + 2 v_max^2 / a_max)`` and ``v_max`` by ``R eps v_max``, with ``eps`` the
     machine epsilon of the limits' dtype. Float32, q_max = 2, v_max = 2, a_max = 12, dt = 0.01 s,
     5 substeps: 17 steps, R = 92, 29 um per limit (58 um of range); float64: ~1e-13, nothing measurable.
+
+    ``v_reach`` (default ``v_max``): the fastest speed a viable state can have, where the range caps it
+    below ``v_max`` (``kinematic_terms``: ``sqrt(2 a_max (q_max - q_min)) + a_max T``); the callers size
+    ``stop_steps`` with it too. Without it a short range with a long stop at ``v_max`` (float32, range 1,
+    v_max 1, a_max 1e-3, dt 1 s: ``2 v_max^2 / a_max = 2000``) got a margin larger than half the range:
+    the guarded limits crossed and a joint at rest on ``q_max`` was given ``+a_max`` (found by fuzzing).
     """
     eps = jnp.finfo(q_min.dtype).eps * (2.0 + roundings * (1.0 + stop_steps))
-    m_q = eps * (jnp.maximum(jnp.abs(q_min), jnp.abs(q_max)) + 2.0 * v_max * v_max / a_max)
+    v_q = v_max if v_reach is None else v_reach
+    m_q = eps * (jnp.maximum(jnp.abs(q_min), jnp.abs(q_max)) + 2.0 * v_q * v_q / a_max)
+    # a range too short for the dtype at its magnitude (float32, [1000, 1000.01]: eps |q| alone exceeds half of
+    # it): the guarded limits meet at the midpoint instead of crossing, every state there brakes toward it
+    m_q = jnp.minimum(m_q, 0.5 * (q_max - q_min))
     return q_min + m_q, q_max - m_q, v_max * (1.0 - eps)
 
 

@@ -26,8 +26,11 @@ def kinematic_terms(model, a: JointArrays, rounding_guard: bool, upper_side) -> 
     viable = in_kernel(model, a)
     q_min, q_max, v_max, a_max = a.q_min, a.q_max, a.v_max, a.a_max
     if rounding_guard:
-        stop_steps = jnp.ceil(v_max / (a_max * model.period))
-        q_min, q_max, v_max = guard_limits(q_min, q_max, v_max, a_max, model.roundings_per_step, stop_steps)
+        # a viable state is no faster than its braking distance allows within the range (zoh: sqrt(2 a_max span);
+        # semi-implicit: D(v) >= v^2 / (2 a_max) - v h / 2, within a_max h of it): the stop the guard covers
+        v_reach = jnp.minimum(v_max, jnp.sqrt(2.0 * a_max * (q_max - q_min)) + a_max * model.period)
+        stop_steps = jnp.ceil(v_reach / (a_max * model.period))
+        q_min, q_max, v_max = guard_limits(q_min, q_max, v_max, a_max, model.roundings_per_step, stop_steps, v_reach)
     q, v = saturate(a.q, a.v, q_min, q_max, v_max, a_max, model.period)
     upper = upper_side(model, q_max - q, v, v_max, a_max)
     lower = {k: -t for k, t in upper_side(model, q - q_min, -v, v_max, a_max).items()}

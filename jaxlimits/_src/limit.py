@@ -38,7 +38,8 @@ class Bounds(NamedTuple):
 
     lower, upper: ``(..., n)`` [rad/s^2], ``lower <= upper`` always.
     viable: ``(..., n)`` bool, whether the current state lies in the viability kernel of the limits
-      (see ``jaxlimits._src.limit``). Where it is False the interval is the best-effort braking action.
+      (see ``jaxlimits._src.limit``). Where it is False the interval is the best-effort braking action;
+      for a NaN state (no side to brake toward) ``lower = upper = 0``.
     """
 
     lower: jax.Array
@@ -111,6 +112,18 @@ def combine(terms: Terms, fuse_sides: bool = False) -> Bounds:
     return Bounds(lower, upper, terms.viable)
 
 
+def nan_state_rule(bounds: Bounds, q, v, a_prev=None) -> Bounds:
+    """A joint whose state (``q``, ``v``, or ``a_prev``; those given) is NaN has no side to brake toward: its
+    bounds are ``lower = upper = 0`` and it is not viable (+-inf and huge states brake as usual)."""
+    shape = bounds.lower.shape
+    state = [jnp.broadcast_to(jnp.isnan(x), shape) for x in (q, v, a_prev) if x is not None]
+    if not state:  # a limit of the action alone (the torque box)
+        return bounds
+    nan = functools.reduce(jnp.logical_or, state)
+    zero = jnp.zeros_like(bounds.lower)
+    return Bounds(jnp.where(nan, zero, bounds.lower), jnp.where(nan, zero, bounds.upper), bounds.viable & ~nan)
+
+
 class AccelerationLimit(abc.ABC):
     """One family of constraints on the next control step's joint accelerations.
 
@@ -143,12 +156,12 @@ class AccelerationLimit(abc.ABC):
                 f"{type(self).__name__} is a halfspace, not a box per joint: use .constraint() "
                 "(Bounds and rows G a <= h) or jl.intersect"
             )
-        return combine(self.evaluate(q, v, a_prev), self.fuse_sides)
+        return nan_state_rule(combine(self.evaluate(q, v, a_prev), self.fuse_sides), q, v, a_prev)
 
     def constraint(self, q, v, a_prev=None) -> Constraint:
         """The box and the halfspace rows (``None`` for a box limit)."""
         t = self.evaluate(q, v, a_prev)
-        return Constraint(combine(t, self.fuse_sides), t.G, t.h)
+        return Constraint(nan_state_rule(combine(t, self.fuse_sides), q, v, a_prev), t.G, t.h)
 
     def terms(self, q, v, a_prev=None) -> dict:
         """``{"upper": {name: array}, "lower": {name: array}}``: what ``bounds`` takes the min/max of."""

@@ -317,7 +317,10 @@ def solve_box_qp(
 
     Returns:
       ``BoxQPResult(x, converged, iterations, infeasible, violation)``. ``x`` satisfies the box
-      exactly, always; it is never NaN for finite inputs. ``iterations``: fast-path iterations
+      exactly, always; it is never NaN for finite inputs. A non-finite ``x_des`` (a NaN/inf command) is
+      not refused (it may be traced): without rows or a dense metric ``x`` is its clip (NaN stays NaN),
+      with them ``x`` may be NaN; ``converged`` is False for it either way (the shields replace non-finite
+      commands by the braking action before projecting). ``iterations``: fast-path iterations
       plus, for the problems handed to the robust path, its iterations.
 
     Raises (eagerly, concrete inputs): ``ValueError`` naming the field and value for bad shapes,
@@ -365,6 +368,10 @@ def solve_box_qp(
         h = jnp.broadcast_to(h, batch + (m,))
 
         res = _dense_batched(x_des, lower, upper, W, G, h, jnp.int32(max_iter))
+    # x_des is the one input not checked eagerly (it is the policy's, traced): a non-finite command has no
+    # projection to converge to
+    finite = jnp.all(jnp.isfinite(x_des), axis=-1) & jnp.all(jnp.isfinite(res.x), axis=-1)
+    res = res._replace(converged=res.converged & finite)
     if gradient == "straight_through":
         # value exactly res.x (x_des - x_des == 0), derivative the identity w.r.t. x_des
         res = res._replace(x=jax.lax.stop_gradient(res.x) + (x_des - jax.lax.stop_gradient(x_des)))
