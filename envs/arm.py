@@ -216,7 +216,8 @@ class ArmReach(Env):
         sim = mujoco.MjModel.from_xml_path(str(xml_path))
         sim.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_LIMIT | mujoco.mjtDisableBit.mjDSBL_CONTACT
         sim.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP  # no damping: the Euler step is explicit in M^-1
-        self.sys = mjx.put_model(sim)
+        # this process's first device (mjx's default, jax.devices()[0], belongs to process 0 under jax.distributed)
+        self.sys = mjx.put_model(sim, device=jax.local_devices()[0])
         self._implicit = sim.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST
 
     # ---- Brax Env interface -------------------------------------------------------------------

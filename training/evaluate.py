@@ -8,10 +8,16 @@ back. Episode ``i`` always uses the ``i``-th key split from ``seed``, whatever t
 results do not depend on the sharding (tested with 1 vs 2 simulated host devices,
 ``XLA_FLAGS=--xla_force_host_platform_device_count=2``).
 
-Multi-host: call ``jax.distributed.initialize()`` in every process first; ``devices=None`` then
-means all global devices, the keys are built with ``jax.make_array_from_callback`` (each process
-supplies its own shards) and the per-episode results are gathered with
-``multihost_utils.process_allgather``. (Only the single-host path is tested here.)
+Multi-process and multi-host: call ``jax.distributed.initialize()`` in every process first
+(``jaxlimits.training.distributed.initialize`` adds the gloo CPU collectives a CPU run needs);
+``devices=None`` then means all global devices, the keys are built with
+``jax.make_array_from_callback`` (each process supplies its own shards), each process simulates the
+episodes on its own devices and the per-episode results are gathered with
+``multihost_utils.process_allgather``, so every process returns all of them. ``python -m
+jaxlimits.training.distributed`` is the command; ``tests/test_multiprocess_eval.py`` runs it in two
+processes on one machine and finds the results of one process, episode by episode, bit for bit.
+An env's arrays must live on its process's own devices: the arms put their MJX model on
+``jax.local_devices()[0]`` (MJX's default, ``jax.devices()[0]``, is process 0's device).
 
 ``policy(params, obs, key, t) -> action`` for one env (``obs (obs_size,)``, ``t`` the step index);
 ``params`` are replicated on every device. ``scripted_policy`` gives the adversarial ones.
@@ -126,6 +132,20 @@ def _global_keys(seed: int, episodes: int, sharding: NamedSharding):
     return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
 
 
+def _replicated(params, sharding: NamedSharding):
+    """``params`` (the same values in every process) replicated on every device of ``sharding``'s mesh."""
+    if jax.process_count() == 1:
+        return jax.device_put(params, sharding)
+
+    # Several processes: each supplies the copies on its own devices. (``jax.device_put`` of an array
+    # that sits on a device, e.g. Brax's parameters, would be a cross-host transfer: CPUs do not have them.)
+    def put(x):
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree.map(put, params)
+
+
 class Evaluator:
     """A compiled batch evaluation: ``Evaluator(env, policy, ...)(params, seed)`` -> per-episode arrays.
 
@@ -150,14 +170,20 @@ class Evaluator:
         self._run = jax.jit(run)
 
     def __call__(self, params, seed: int = 0) -> dict:
+        return self.gather(self.sharded(params, seed))
+
+    def sharded(self, params, seed: int = 0) -> dict:
+        """The per-episode results as global ``jax.Array`` s ``(padded,)``, sharded over the mesh (not gathered)."""
         keys = _global_keys(seed, self.padded, NamedSharding(self.mesh, PartitionSpec("episodes", None)))
-        params = jax.device_put(params, NamedSharding(self.mesh, PartitionSpec()))
-        out = self._run(params, keys)
+        return self._run(_replicated(params, NamedSharding(self.mesh, PartitionSpec())), keys)
+
+    def gather(self, sharded: dict) -> dict:
+        """``sharded``'s arrays as NumPy arrays ``(episodes,)`` in every process (padding dropped)."""
         if jax.process_count() > 1:
             from jax.experimental import multihost_utils
 
-            out = multihost_utils.process_allgather(out, tiled=True)
-        return {k: np.asarray(v)[: self.episodes] for k, v in out.items()}
+            sharded = multihost_utils.process_allgather(sharded, tiled=True)
+        return {k: np.asarray(v)[: self.episodes] for k, v in sharded.items()}
 
 
 def rollout_episodes(
