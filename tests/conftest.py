@@ -87,6 +87,8 @@ SLOWEST_FILES_FIRST = (
     "test_gym_shield.py",
     "test_third_party_training.py",
     "test_envs_impact.py",
+    "test_multiprocess_eval.py",
+    "test_fuzz_core.py",
 )
 
 

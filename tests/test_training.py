@@ -205,10 +205,12 @@ def _cli(*args, timeout=900):
 
 
 def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
-    """``jaxlimits main`` (tiny config) trains both shields, evaluates, plots; ``evaluate --run`` reloads."""
+    """``jaxlimits main --task reach`` (tiny config) trains both shields, evaluates, plots; ``evaluate --run``
+    reloads. (The contact task's half of the main job: tests/test_contact_task.py.)"""
     out = tmp_path / "main"
-    proc = _cli("main", "--config", "tiny", "--out", str(out))
-    assert "| viability |" in proc.stdout and "| none |" in proc.stdout
+    proc = _cli("main", "--task", "reach", "--config", "tiny", "--out", str(out))
+    assert "| reach | viability |" in proc.stdout and "| reach | none |" in proc.stdout
+    assert "contact" not in json.loads((out / "results.json").read_text())
     results = json.loads((out / "results.json").read_text())
     vi = results["shields"]["viability"]
     from jaxlimits.training import brax_ppo
@@ -219,7 +221,7 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
     assert vi["evaluation"]["violations/position"] == 0 and vi["evaluation"]["violations/velocity"] == 0
     ref = results["reference"]  # the scripted IK controller on the same episodes (velocity actions + IK observation)
     assert ref["episodes"] == 64 and ref["violations/position"] == 0 and ref["violations/velocity"] == 0
-    assert "| reference: scripted IK, viability |" in proc.stdout
+    assert "| reach | reference: scripted IK, viability |" in proc.stdout
     png = (out / "training_curves.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     rows = [json.loads(x) for x in (out / "runs" / "viability" / "metrics.jsonl").read_text().splitlines()]

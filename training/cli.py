@@ -1,13 +1,16 @@
 """Command-line entry point: ``jaxlimits <command>`` (or ``python -m jaxlimits.training.cli``).
 
 Commands:
-  main         the main job: train PPO on planar reach with shield=viability and shield=none,
-               evaluate both over 10^4 episodes, print the table, write plots (``make demo``)
+  main         the main job (``make demo``): planar reach trained with shield=viability and shield=none,
+               and the contact task (planar wall strike) with and without the impact cap; each policy
+               evaluated over 10^4 episodes; one table, plots (``--task reach`` or ``contact``: one)
   contact      the contact task (planar wall strike): train PPO with and without the impact cap,
                evaluate both over 10^4 episodes, print the table, write plots
-  train        one training run from a config file (``training/configs/*.json``) and flags
+  train        one training run from a config file (``training/configs/*.json``) and flags;
+               ``--resume RUN_DIR`` continues a killed PPO run from its last checkpoint
   evaluate     jitted, sharded batch evaluation of a run's checkpoint or of a scripted policy
   joint-space  Del Prete 2018 Sec. V-A: naive vs viability bounds on one joint (table + PNG)
+  render       a run's rollout as an animated GIF, beside the same policy unshielded or another run
 """
 
 from __future__ import annotations
@@ -33,14 +36,16 @@ def _add_run_flags(p, default_out):
     p.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
 
 
-def _config(args, **extra):
+def _config(args, config_name=None, **extra):
+    """The run config from ``--config`` (or ``config_name``, or ``<env>_<algo>``) with the flags' overrides."""
     from jaxlimits.training import config
 
-    name = args.config or f"{args.env or 'planar_reach'}_{args.algo or 'ppo'}"
+    name = config_name or args.config or f"{args.env or 'planar_reach'}_{args.algo or 'ppo'}"
     cfg = config.load(name)
-    return cfg.override(
-        env=args.env, algo=args.algo, num_timesteps=args.steps, seed=args.seed, eval_episodes=args.episodes, **extra
+    overrides = dict(
+        env=args.env, algo=args.algo, num_timesteps=args.steps, seed=args.seed, eval_episodes=args.episodes
     )
+    return cfg.override(**{**overrides, **extra})
 
 
 def main(argv=None) -> int:
@@ -52,7 +57,13 @@ def main(argv=None) -> int:
 
     p_main = sub.add_parser("main", help="train with and without the shield, evaluate, compare (the main job)")
     _add_run_flags(p_main, "results/main")
-    p_main.add_argument("--shields", default="viability,none", help="comma-separated shields to train")
+    p_main.add_argument("--shields", default="viability,none", help="comma-separated shields of the reach task")
+    p_main.add_argument(
+        "--task", default="reach,contact", help="comma-separated tasks: reach (--config), contact (--contact-config)"
+    )
+    p_main.add_argument(
+        "--contact-config", default="planar_wall_ppo", help="config of the contact task (--steps etc. apply to both)"
+    )
 
     p_contact = sub.add_parser(
         "contact", help="the contact task: train with and without the impact cap, evaluate, compare"
@@ -62,6 +73,11 @@ def main(argv=None) -> int:
     p_train = sub.add_parser("train", help="one training run")
     _add_run_flags(p_train, None)
     p_train.add_argument("--shield", choices=("none", "clip", "naive", "viability", "jerk"), help="override the shield")
+    p_train.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        help="continue a killed PPO run from its last checkpoint (its own config; no other run flags)",
+    )
 
     p_eval = sub.add_parser("evaluate", help="batch evaluation of a run folder or a scripted policy")
     p_eval.add_argument("--run", help="a run folder written by `train` (uses its env and shield)")
@@ -77,6 +93,20 @@ def main(argv=None) -> int:
     p_js.add_argument("--out", default="results/joint_space", help="folder for results.json and joint_space.png")
     p_js.add_argument("--no-plot", action="store_true", help="skip the PNG")
 
+    p_render = sub.add_parser("render", help="a GIF of a run's rollout beside an unshielded one or another run's")
+    p_render.add_argument("--run", required=True, help="a run folder written by `train` (left panel)")
+    which = p_render.add_mutually_exclusive_group()
+    which.add_argument("--compare", metavar="RUN_DIR", help="right panel: this run's policy in its own env")
+    which.add_argument(
+        "--unshielded", action="store_true", help="right panel: the same policy with shield none (the default)"
+    )
+    p_render.add_argument("--out", required=True, help="the GIF file to write")
+    p_render.add_argument("--seed", type=int, default=0, help="episode seed (start state, target / wall gap)")
+    p_render.add_argument("--frames", type=int, help="at most this many frames (default: the whole episode)")
+    p_render.add_argument("--stride", type=int, default=2, help="env steps per frame")
+    p_render.add_argument("--size", type=int, default=240, help="panel width and scene height [px]")
+    p_render.add_argument("--slowdown", type=float, default=1.0, help="playback slower than real time by this")
+
     args = parser.parse_args(argv)
     if args.command == "joint-space":
         from jaxlimits.training.joint_space_demo import run
@@ -87,8 +117,17 @@ def main(argv=None) -> int:
         from jaxlimits.training import main_job
 
         shields = tuple(s for s in args.shields.split(",") if s)
-        main_job.run(args.out, _config(args), shields=shields, show_progress=not args.no_progress)
-        print(f"wrote {args.out}/results.json, results.md, training_curves.png and runs/")
+        tasks = [t for t in args.task.split(",") if t]
+        if not tasks or set(tasks) - {"reach", "contact"}:
+            parser.error(f"--task must name reach and/or contact, got {args.task!r}")
+        main_job.run(
+            args.out,
+            _config(args) if "reach" in tasks else None,
+            shields=shields,
+            show_progress=not args.no_progress,
+            contact_cfg=_config(args, config_name=args.contact_config, env=None) if "contact" in tasks else None,
+        )
+        print(f"wrote {args.out}/results.json, results.md, the training curves (PNG) and the run folders")
     elif args.command == "contact":
         from jaxlimits.training import contact_job
 
@@ -99,13 +138,41 @@ def main(argv=None) -> int:
     elif args.command == "train":
         from jaxlimits.training import algos
 
-        cfg = _config(args, shield=args.shield)
-        out = args.out or f"runs/{cfg.env}_{cfg.algo}_{cfg.shield}_s{cfg.seed}"
-        summary = algos.train(cfg, out, show_progress=not args.no_progress)
+        if args.resume:
+            given = [
+                f
+                for f in ("config", "env", "algo", "steps", "seed", "episodes", "out", "shield")
+                if getattr(args, f) is not None
+            ]
+            if given:
+                parser.error(f"--resume continues a run with its stored config; drop --{', --'.join(given)}")
+            from jaxlimits.training import brax_ppo
+
+            out = args.resume
+            summary = brax_ppo.resume(out, show_progress=not args.no_progress)
+        else:
+            cfg = _config(args, shield=args.shield)
+            out = args.out or f"runs/{cfg.env}_{cfg.algo}_{cfg.shield}_s{cfg.seed}"
+            summary = algos.train(cfg, out, show_progress=not args.no_progress)
         print(json.dumps({k: summary[k] for k in ("training", "wall_s", "env_steps_per_s")}, indent=2))
         print(f"wrote {out}/")
     elif args.command == "evaluate":
         _evaluate(args, parser)
+    elif args.command == "render":
+        from jaxlimits.training import render
+
+        info = render.render_runs(
+            args.run,
+            args.out,
+            compare=args.compare,
+            seed=args.seed,
+            size=args.size,
+            stride=args.stride,
+            frames=args.frames,
+            slowdown=args.slowdown,
+        )
+        print(json.dumps(info, indent=2))
+        print(f"wrote {args.out} ({info['bytes'] / 1e6:.2f} MB, {info['frames']} frames)")
     return 0
 
 

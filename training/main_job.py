@@ -1,98 +1,64 @@
-"""The main job: train PPO on planar reach with and without the shield, evaluate both, compare.
+"""The main job (``make demo``): both guarantees trained and measured, one table.
 
-``run(out)`` trains one run per shield (default ``viability`` and ``none``) from the same config and
-seed, evaluates each trained policy with its own shield over ``cfg.eval_episodes`` parallel episodes
-(``evaluate.Evaluator``), and writes to ``out``: ``runs/<shield>/`` (each run's folder),
-``results.json`` (training totals and evaluation rows), ``results.md`` (the table) and
-``training_curves.png``. It prints the comparison table. With velocity actions and the IK
-observation it also evaluates ``evaluate.ik_reference_policy`` (a greedy scripted reach controller,
-viability shield, same episodes) as the reference row a learned policy is measured against.
+``run(out, cfg, contact_cfg=...)`` runs two tasks, each trained from the same config and seed per
+shield and evaluated over ``eval_episodes`` parallel episodes (``evaluate.Evaluator``):
+
+- ``reach`` (``cfg``, planar reach): one run per shield (default ``viability`` and ``none``); with
+  velocity actions and the IK observation also ``evaluate.ik_reference_policy`` (a greedy scripted
+  reach controller, viability shield, same episodes), the reference a learned policy is measured
+  against;
+- ``contact`` (``contact_cfg``, the planar wall strike; ``contact_job``): the joint-limit shield with
+  and without the impact-aware speed cap, every strike measured and counted.
+
+Either task can be left out (``cfg=None`` / ``contact_cfg=None``). It prints one comparison table
+(``experiment.format_table``) and writes to ``out``: ``runs/<shield>/`` (reach runs),
+``contact/runs/<variant>/`` (contact runs), ``results.json`` (the reach section at the top level as
+before, ``"contact"``: the contact job's results), ``results.md`` (the table),
+``training_curves.png`` and ``contact_curves.png``.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
-from jaxlimits.training import algos, brax_ppo, evaluate, plots
+from jaxlimits.training import brax_ppo, contact_job, evaluate, experiment
 from jaxlimits.training.config import RunConfig
 
 
-def run(out, cfg: RunConfig, shields=("viability", "none"), show_progress: bool = True) -> dict:
+def run(
+    out,
+    cfg: RunConfig | None,
+    shields=("viability", "none"),
+    show_progress: bool = True,
+    contact_cfg: RunConfig | None = None,
+    contact_variants=tuple(contact_job.VARIANTS),
+) -> dict:
+    if cfg is None and contact_cfg is None:
+        raise ValueError("the main job needs at least one task: cfg (reach) or contact_cfg (contact)")
     out = Path(out)
     t0 = time.perf_counter()
-    results = {"config": cfg.to_dict(), "shields": {}}
-    runs = {}
-    for shield in shields:
-        runs[shield] = out / "runs" / shield
-        results["shields"][shield] = train_and_evaluate(cfg.override(shield=shield), runs[shield], show_progress)
-    if cfg.action_mode == "velocity" and cfg.ik_observation:
-        env = brax_ppo.env_from_config(cfg.override(shield="viability"))
-        policy = evaluate.ik_reference_policy(env.action_size, env.limits.v_max)
-        results["reference"] = evaluate.evaluate(
-            env, policy, None, episodes=cfg.eval_episodes, episode_length=cfg.episode_length, seed=cfg.seed + 1
-        )
+    results, sections, curves = {}, {}, {}
+    if cfg is not None:
+        results.update(config=cfg.to_dict(), shields={})
+        runs = {}
+        for shield in shields:
+            runs[shield] = out / "runs" / shield
+            results["shields"][shield] = experiment.train_and_evaluate(
+                cfg.override(shield=shield), runs[shield], show_progress
+            )
+        if cfg.action_mode == "velocity" and cfg.ik_observation:
+            env = brax_ppo.env_from_config(cfg.override(shield="viability"))
+            policy = evaluate.ik_reference_policy(env.action_size, env.limits.v_max)
+            results["reference"] = evaluate.evaluate(
+                env, policy, None, episodes=cfg.eval_episodes, episode_length=cfg.episode_length, seed=cfg.seed + 1
+            )
+        sections["reach"] = {"runs": results["shields"], "reference": results.get("reference")}
+        curves["training_curves.png"] = ("reach", runs)
+    if contact_cfg is not None:
+        results["contact"] = contact_job.run(out / "contact", contact_cfg, show_progress, contact_variants, quiet=True)
+        sections["contact"] = {"runs": results["contact"]["variants"]}
+        curves["contact_curves.png"] = ("contact", contact_job.run_folders(out / "contact", contact_variants))
     results["wall_s"] = time.perf_counter() - t0
-    write_results(out, results, format_results(results), runs)
+    experiment.write_results(out, results, experiment.format_table(sections), curves)
     return results
-
-
-def train_and_evaluate(cfg: RunConfig, run_dir, show_progress: bool = True) -> dict:
-    """Train one run from ``cfg`` into ``run_dir``, reload its checkpoint and evaluate the deterministic
-    policy with its own shield over ``cfg.eval_episodes`` episodes (seed ``cfg.seed + 1``). Returns the
-    training totals, the training wall time and env-steps/s, and the evaluation row."""
-    summary = algos.train(cfg, run_dir, show_progress=show_progress)
-    run_cfg, policy, params = algos.load_policy(run_dir)
-    row = evaluate.evaluate(
-        brax_ppo.env_from_config(run_cfg),
-        policy,
-        params,
-        episodes=cfg.eval_episodes,
-        episode_length=cfg.episode_length,
-        action_repeat=cfg.action_repeat,
-        seed=cfg.seed + 1,
-    )
-    return {
-        "training": summary["training"],
-        "training_wall_s": summary["wall_s"],
-        "training_env_steps_per_s": summary["env_steps_per_s"],
-        "evaluation": row,
-    }
-
-
-def write_results(out: Path, results: dict, table: str, runs: dict) -> None:
-    """Print ``table``; write ``results.json``, ``results.md`` and ``training_curves.png`` (one curve per run
-    folder in ``runs``: name -> folder) to ``out``."""
-    print(table)
-    plots.plot_runs(runs, out / "training_curves.png")
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    (out / "results.md").write_text(table + "\n")
-
-
-def format_results(results: dict) -> str:
-    """Markdown table: per shield, training violations (all env-steps) and evaluation figures."""
-    head = (
-        "| shield | training env-steps | training pos / vel violations (max rad, rad/s) | train wall s (env-steps/s) "
-        "| eval episodes | eval success | eval return | eval pos / vel violations (max) | eval intervention rad/s² |"
-    )
-    lines = [head, "|---" * 9 + "|"]
-    for shield, r in results["shields"].items():
-        t = r["training"]
-        lines.append(
-            f"| {shield} | {t['env_steps']:,} | {t['violations/position']:,} / {t['violations/velocity']:,} "
-            f"({t['max_violation/position']:.3g}, {t['max_violation/velocity']:.3g}) "
-            f"| {r['training_wall_s']:.0f} ({r['training_env_steps_per_s']:,.0f}) | {_evaluation_cells(r['evaluation'])}"
-        )
-    if "reference" in results:
-        lines.append(f"| reference: scripted IK, viability | – | – | – | {_evaluation_cells(results['reference'])}")
-    return "\n".join(lines)
-
-
-def _evaluation_cells(e: dict) -> str:
-    """The table's evaluation columns (and the row's closing bar) of one ``evaluate.evaluate`` row."""
-    return (
-        f"{e['episodes']:,} | {e['success_rate']:.3f} | {e['return_mean']:.2f} "
-        f"| {e['violations/position']:,} / {e['violations/velocity']:,} "
-        f"({e['max_violation/position']:.3g}, {e['max_violation/velocity']:.3g}) | {e['intervention_mean']:.3g} |"
-    )

@@ -19,8 +19,9 @@ def read_rows(run_dir) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def plot_runs(runs: dict, out_png) -> Path:
-    """``runs``: label -> run folder. One panel per ``PANELS`` entry, one curve per run."""
+def plot_runs(runs: dict, out_png, panels=PANELS) -> Path:
+    """``runs``: label -> run folder. One panel per ``panels`` entry (``(metrics key, title)``, four of
+    them), one curve per run."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -30,7 +31,7 @@ def plot_runs(runs: dict, out_png) -> Path:
     for label, run_dir in runs.items():
         rows = read_rows(run_dir)
         steps = [r["step"] for r in rows]
-        for ax, (key, title) in zip(axes.flat, PANELS):
+        for ax, (key, title) in zip(axes.flat, panels):
             ax.plot(steps, [r.get(key, float("nan")) for r in rows], marker="o", ms=3, label=label)
             ax.set_title(title, fontsize=10)
     for ax in axes[1]:

@@ -49,6 +49,22 @@ class Tally:
             for k, x in maxes.items():
                 self.maxes[k] = max(self.maxes[k], float(np.max(x)))
 
+    def state(self) -> dict:
+        """The totals as JSON data (a training checkpoint's ``tally``); ``from_state`` reads it back."""
+        with self._lock:
+            return {"counts": dict(self.counts), "maxes": dict(self.maxes)}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "Tally":
+        """A ``Tally`` continuing from ``state()`` (a resumed run); raises ``ValueError`` on missing keys."""
+        out = cls()
+        missing = sorted(set(COUNTS) - set(state.get("counts", {}))) + sorted(set(MAXES) - set(state.get("maxes", {})))
+        if missing:
+            raise ValueError(f"tally state lacks {missing}")
+        out.counts.update({k: int(state["counts"][k]) for k in COUNTS})
+        out.maxes.update({k: float(state["maxes"][k]) for k in MAXES})
+        return out
+
     @property
     def env_steps(self) -> int:
         return self.counts["env_steps"]
