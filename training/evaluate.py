@@ -84,14 +84,16 @@ def ik_reference_policy(n: int, v_max, gain: float = 10.0):
     return policy
 
 
-def _episode(env, policy, params, key, episode_length: int, action_repeat: int = 1):
-    """One episode of ``episode_length`` env steps, the policy acting every ``action_repeat`` of them.
+def play_episode(env, policy, params, key, steps: int, action_repeat: int, observe, carry0):
+    """One episode of ``steps`` env steps, the policy acting every ``action_repeat`` of them (the action held
+    in between); the one rollout of the evaluator and of ``render``.
 
-    Returns per-episode summaries (scalars) of return, success and violations; every env step
-    counts (not only those where the policy acts).
+    ``key`` splits into the reset key and the policy's ``(k_episode, k_act)`` (its ``t`` is the action's
+    index); ``observe(carry, state) -> (carry, out)`` runs after every env step. Returns ``(first state,
+    last state, carry, outs)`` (``outs`` stacked over the steps).
     """
     k_reset, k_episode, k_act = jax.random.split(key, 3)
-    state = env.reset(k_reset)
+    state0 = env.reset(k_reset)
 
     def body(carry, t):
         state, acc, held = carry
@@ -101,6 +103,22 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
             lambda: held,
         )
         state = env.step(state, action)
+        acc, out = observe(acc, state)
+        return (state, acc, action), out
+
+    held0 = jnp.zeros((env.action_size,), jnp.float32)
+    (state, acc, _), outs = jax.lax.scan(body, (state0, carry0, held0), jnp.arange(steps))
+    return state0, state, acc, outs
+
+
+def _episode(env, policy, params, key, episode_length: int, action_repeat: int = 1):
+    """One episode of ``episode_length`` env steps, the policy acting every ``action_repeat`` of them.
+
+    Returns per-episode summaries (scalars) of return, success and violations; every env step
+    counts (not only those where the policy acts).
+    """
+
+    def observe(acc, state):
         m = state.metrics
         acc = {
             "return": acc["return"] + state.reward,
@@ -111,14 +129,13 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
             "strikes": acc["strikes"] + m.get("strike", 0.0),
             "max_strike_ratio": jnp.maximum(acc["max_strike_ratio"], m.get("strike_ratio", 0.0)),
         }
-        return (state, acc, action), None
+        return acc, None
 
     zero = jnp.zeros((), jnp.float32)
     acc0 = {"return": zero, "intervention": zero, "nonfinite_actions": zero, "strikes": zero, "max_strike_ratio": zero}
     acc0.update({f"count/{k}": zero for k in VIOLATION_KEYS})
     acc0.update({f"max/{k}": zero for k in VIOLATION_KEYS})
-    held0 = jnp.zeros((env.action_size,), jnp.float32)
-    (state, acc, _), _ = jax.lax.scan(body, (state, acc0, held0), jnp.arange(episode_length))
+    _, state, acc, _ = play_episode(env, policy, params, key, episode_length, action_repeat, observe, acc0)
     acc["final_distance"] = state.metrics["distance"]
     if "success" in state.metrics:  # the env's own success (WallStrike: the wall was struck), else the distance's
         acc["success"] = state.metrics["success"]

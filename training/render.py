@@ -53,6 +53,8 @@ import mujoco
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from jaxlimits.training import evaluate
+
 RED = np.array([0.9, 0.05, 0.05, 1.0], np.float32)
 GREEN = np.array([0.1, 0.75, 0.2, 1.0], np.float32)
 TARGET_RGBA = np.array([0.1, 0.75, 0.2, 0.6], np.float32)
@@ -96,9 +98,7 @@ class Rollout:
 
 
 def _episode_trajectory(env, policy, steps: int, action_repeat: int, params, key):
-    """The states and metrics of one episode (``evaluate._episode``'s key use and action repeat)."""
-    k_reset, k_episode, k_act = jax.random.split(key, 3)
-    state = env.reset(k_reset)
+    """The states and metrics of one episode (``evaluate.play_episode``: the evaluator's rollout)."""
     zero = jnp.zeros((), jnp.float32)
 
     def record(s):
@@ -108,19 +108,10 @@ def _episode_trajectory(env, policy, steps: int, action_repeat: int, params, key
         rec.update({k: jnp.asarray(s.metrics.get(k, zero), jnp.float32) for k in _METRICS})
         return rec
 
-    def body(carry, t):
-        s, held = carry
-        action = jax.lax.cond(
-            t % action_repeat == 0,
-            lambda: policy(params, s.obs, jnp.stack([k_episode, k_act]), t // action_repeat),
-            lambda: held,
-        )
-        s = env.step(s, action)
-        return (s, action), record(s)
-
-    held0 = jnp.zeros((env.action_size,), jnp.float32)
-    _, traj = jax.lax.scan(body, (state, held0), jnp.arange(steps))
-    first = record(state)
+    state0, _, _, traj = evaluate.play_episode(
+        env, policy, params, key, steps, action_repeat, lambda c, s: (c, record(s)), ()
+    )
+    first = record(state0)
     first.update({k: zero for k in _METRICS})
     return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, traj)
 
