@@ -371,13 +371,10 @@ class WallStrike(ArmReach):
         # and every strike is measured: once a strike's window has closed and the ball was off the wall for a whole
         # step (no substep in contact), the record re-arms, so the next contact (a re-strike after a bounce or a
         # pull-back) is measured too
+        first_step = d0.time == 0
         rearm = (kept["hit"] > 0) & (kept["open"] == 0) & (kept["off"] > 0)
-        imp0 = jax.tree.map(
-            lambda fresh, k: jnp.where(d0.time == 0, fresh, jnp.where(rearm, fresh, k)),
-            self._fresh_impact(d0),
-            kept,
-        )
-        imp0["struck"] = jnp.where(d0.time == 0, 0.0, kept["struck"])
+        fresh = self._fresh_impact(d0, struck=jnp.where(first_step, 0.0, kept["struck"]))
+        imp0 = jax.tree.map(lambda f, k: jnp.where(first_step | rearm, f, k), fresh, kept)
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
             lambda c, _: self._substep_contact(c, a, band), (d0, imp0), None, length=self.frame_skip
         )
