@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_qp.py            # batches 1, 64, 4096, 65536
     .venv/bin/python benchmarks/bench_qp.py --quick    # batch 4096 only, fewer repeats (< 1 min)
+    .venv/bin/python benchmarks/bench_qp.py --smoke    # batch 512, clip/oracle/dense/halfspace, no ratios (the tests' run)
 
 Problems: n = 7 joints, random SPD metrics (condition number 1e2), x_des ~ 2 N(0, 1), box [-1, 1],
 one random halfspace for the halfspace rows (then two rows at batch 4096, all satisfiable or 10 %
@@ -216,10 +217,11 @@ def two_row_figures(reps=10):
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--smoke", action="store_true", help="accuracy of four methods, no ratios")
     args = parser.parse_args()
-    batches = [4096] if args.quick else [1, 64, 4096, 65536]
+    batches = [512] if args.smoke else [4096] if args.quick else [1, 64, 4096, 65536]
     names = ["clip", "floor", "oracle", "dense", "halfspace", "dense_vmap", "halfspace_vmap", "BoxCDQP", "qpax"]
-    names = names if args.quick else list(REFERENCE_OF)
+    names = ["clip", "oracle", "dense", "halfspace"] if args.smoke else names if args.quick else list(REFERENCE_OF)
     lo, hi = -jnp.ones(N, jnp.float32), jnp.ones(N, jnp.float32)
     fns = methods(lo, hi)
     rows, results = [], {}
@@ -238,7 +240,7 @@ def main():
         for name in names:
             if batch >= 4096 and name.startswith("BoxOSQP"):
                 continue  # ~1 s per 64 problems on a CPU: ~1 min per call at 4096 (skipped)
-            reps = 5 if (args.quick or batch >= 4096) else 30
+            reps = 1 if args.smoke else 5 if (args.quick or batch >= 4096) else 30
             if name.startswith(("Box", "qpax")) and batch >= 4096:
                 reps = 2
             if name in ("clip", "floor", "oracle", "dense", "halfspace", "dense_vmap", "halfspace_vmap"):
@@ -262,7 +264,7 @@ def main():
                 flush=True,
             )
 
-    for name, med, mn, conv, infeas in two_row_figures():
+    for name, med, mn, conv, infeas in [] if args.smoke else two_row_figures():
         results[f"{name}@4096"] = {"fwd_s": med, "fwd_min_s": mn, "converged": conv, "infeasible": infeas}
         print(
             f"  4096 {name:<28} fwd {med * 1e3:8.2f} ms (min {mn * 1e3:8.2f})   converged {conv:.4f}   "
@@ -271,7 +273,7 @@ def main():
         )
 
     ratios = {}
-    for batch in batches:
+    for batch in [] if args.smoke else batches:  # --smoke times too few methods for the ratios
         for stat in ("median", "min"):
             suf = "" if stat == "median" else "_min"
 
@@ -320,6 +322,7 @@ def main():
         "dtype": "float32",
         "device": jax.devices()[0].platform,
         "quick": args.quick,
+        "smoke": args.smoke,
         "results": results,
         "ratios": ratios,
     }

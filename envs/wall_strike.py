@@ -240,6 +240,7 @@ class WallStrike(ArmReach):
                 "accel_error": zero,
                 "model_error": zero,
                 "contact": zero,
+                "disturbance": zero,
                 "impact/hit": zero,
                 "impact/w": zero,
                 "impact/tau": zero,
@@ -391,6 +392,7 @@ class WallStrike(ArmReach):
         metrics["distance"] = dist
         in_contact = jnp.max(contact)
         metrics["contact"] = in_contact
+        metrics["disturbance"] = in_contact  # the evaluator's name: a contact acted on the arm in this step
         imp = dict(imp, off=1.0 - in_contact)
         spec = self.impact
         metrics["impact/hit"] = imp["hit"]

@@ -89,6 +89,8 @@ SLOWEST_FILES_FIRST = (
     "test_envs_impact.py",
     "test_multiprocess_eval.py",
     "test_fuzz_core.py",
+    "test_campaign.py",
+    "test_readme_figures.py",
 )
 
 

@@ -11,6 +11,8 @@ Commands:
   evaluate     jitted, sharded batch evaluation of a run's checkpoint or of a scripted policy
   joint-space  Del Prete 2018 Sec. V-A: naive vs viability bounds on one joint (table + PNG)
   render       a run's rollout as an animated GIF, beside the same policy unshielded or another run
+  campaign     the safety campaign: every robot x shield x adversarial policy class, >= 10^7 env-steps per
+               row, violations counted at every step (``jaxlimits campaign --help``)
 """
 
 from __future__ import annotations
@@ -50,6 +52,11 @@ def _config(args, config_name=None, **extra):
 
 def main(argv=None) -> int:
     set_cpu_xla_flags()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["campaign"]:  # its own parser (shared with benchmarks/safety_campaign.py)
+        from jaxlimits.training import campaign
+
+        return campaign.main(argv[1:])
     parser = argparse.ArgumentParser(
         prog="jaxlimits", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -93,6 +100,7 @@ def main(argv=None) -> int:
     p_js.add_argument("--out", default="results/joint_space", help="folder for results.json and joint_space.png")
     p_js.add_argument("--no-plot", action="store_true", help="skip the PNG")
 
+    sub.add_parser("campaign", help="the safety campaign (see `jaxlimits campaign --help`)")
     p_render = sub.add_parser("render", help="a GIF of a run's rollout beside an unshielded one or another run's")
     p_render.add_argument("--run", required=True, help="a run folder written by `train` (left panel)")
     which = p_render.add_mutually_exclusive_group()

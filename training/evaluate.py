@@ -118,21 +118,33 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
     counts (not only those where the policy acts).
     """
 
-    def observe(acc, state):
+    def observe(prev, state):
         m = state.metrics
         acc = {
-            "return": acc["return"] + state.reward,
-            "intervention": acc["intervention"] + m.get("intervention", 0.0),
-            **{f"count/{k}": acc[f"count/{k}"] + m[f"count/{k}"] for k in VIOLATION_KEYS},
-            **{f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[f"violation/{k}"]) for k in VIOLATION_KEYS},
-            "nonfinite_actions": acc["nonfinite_actions"] + m.get("nonfinite_action", 0.0),
-            "strikes": acc["strikes"] + m.get("strike", 0.0),
-            "max_strike_ratio": jnp.maximum(acc["max_strike_ratio"], m.get("strike_ratio", 0.0)),
+            "return": prev["return"] + state.reward,
+            "intervention": prev["intervention"] + m.get("intervention", 0.0),
+            **{f"count/{k}": prev[f"count/{k}"] + m[f"count/{k}"] for k in VIOLATION_KEYS},
+            **{f"max/{k}": jnp.maximum(prev[f"max/{k}"], m[f"violation/{k}"]) for k in VIOLATION_KEYS},
+            "nonfinite_actions": prev["nonfinite_actions"] + m.get("nonfinite_action", 0.0),
+            "strikes": prev["strikes"] + m.get("strike", 0.0),
+            "max_strike_ratio": jnp.maximum(prev["max_strike_ratio"], m.get("strike_ratio", 0.0)),
+            # steps that began outside the viability kernel / whose bounds conflicted with the torque box
+            "nonviable": prev["nonviable"] + (1.0 - m.get("viable", 1.0)),
+            "conflicts": prev["conflicts"] + m.get("torque_box_conflict", 0.0),
         }
+        # from the first step a contact pushed the arm (metric "disturbance" > 0) to the episode's end the
+        # trajectory is disturbed: the joint-limit guarantee covers the undisturbed steps (an impact's own
+        # bound is the impact cap's, counted in count/impact)
+        disturbed = ((prev["disturbed_steps"] > 0) | (m.get("disturbance", 0.0) > 0)).astype(jnp.float32)
+        acc["disturbed_steps"] = prev["disturbed_steps"] + disturbed
+        for k in VIOLATION_KEYS:
+            acc[f"undisturbed/count/{k}"] = prev[f"undisturbed/count/{k}"] + m[f"count/{k}"] * (1.0 - disturbed)
         return acc, None
 
     zero = jnp.zeros((), jnp.float32)
     acc0 = {"return": zero, "intervention": zero, "nonfinite_actions": zero, "strikes": zero, "max_strike_ratio": zero}
+    acc0.update(nonviable=zero, conflicts=zero, disturbed_steps=zero)
+    acc0.update({f"undisturbed/count/{k}": zero for k in VIOLATION_KEYS})
     acc0.update({f"count/{k}": zero for k in VIOLATION_KEYS})
     acc0.update({f"max/{k}": zero for k in VIOLATION_KEYS})
     _, state, acc, _ = play_episode(env, policy, params, key, episode_length, action_repeat, observe, acc0)
@@ -230,10 +242,14 @@ def summarize(per_episode: dict, episode_length: int, success_radius: float = SU
         "final_distance_mean": float(np.mean(per_episode["final_distance"], dtype=np.float64)),
         "intervention_mean": float(np.mean(per_episode["intervention"], dtype=np.float64)),
         "nonfinite_actions": int(np.sum(per_episode["nonfinite_actions"])),
+        "nonviable": int(np.sum(per_episode["nonviable"], dtype=np.float64)),
+        "conflicts": int(np.sum(per_episode["conflicts"], dtype=np.float64)),
+        "disturbed_steps": int(np.sum(per_episode["disturbed_steps"], dtype=np.float64)),
     }
     for k in VIOLATION_KEYS:
         row[f"violations/{k}"] = int(np.sum(per_episode[f"count/{k}"], dtype=np.float64))
         row[f"max_violation/{k}"] = float(np.max(per_episode[f"max/{k}"]))
+        row[f"undisturbed_violations/{k}"] = int(np.sum(per_episode[f"undisturbed/count/{k}"], dtype=np.float64))
     return row
 
 

@@ -1,0 +1,144 @@
+"""The reduced safety campaign (issue 16): the planar arm shielded and unshielded under every policy class for
+10^5 env-steps per row, and the planar wall strike with the impact cap, through the sharded evaluator. The shielded
+rows violate none of the limits their shield guarantees; the same policies unshielded do (so the count can
+fail); the NaN substitutions equal a direct count of the policy's non-finite actions; the CLI writes its table.
+The full campaign (>= 10^7 env-steps per row, every target) is ``benchmarks/safety_campaign.py``."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxlimits.training import campaign
+
+STEPS = 100_000
+EPISODE = 200
+
+
+@pytest.fixture(scope="module")
+def planar_rows():
+    return campaign.run(["planar arm"], STEPS, shields=("viability", "none"), chunk=STEPS // EPISODE, progress=None)
+
+
+def _row(rows, shield, policy):
+    (r,) = [r for r in rows if r["shield"] == shield and r["policy"] == policy]
+    return r
+
+
+def test_every_row_ran_its_steps(planar_rows):
+    assert {(r["shield"], r["policy"]) for r in planar_rows} == {
+        (s, p) for s in ("viability", "none") for p in campaign.POLICY_CLASSES
+    }
+    assert all(r["env_steps"] >= STEPS and r["env_steps_per_s"] > 0 for r in planar_rows)
+    merged = campaign.by_shield(planar_rows)  # the README's compact table: one row per shield
+    assert [m["shield"] for m in merged] == ["viability", "none"]
+    for m in merged:
+        group = [r for r in planar_rows if r["shield"] == m["shield"]]
+        assert m["env_steps"] == sum(r["env_steps"] for r in group)
+        assert m["position/count"] == sum(r["position/count"] for r in group)
+        assert m["velocity/worst"] == max(r["velocity/worst"] for r in group)
+        assert campaign.claim_violations(m) == sum(campaign.claim_violations(r) for r in group)
+
+
+def test_shielded_rows_violate_nothing_they_guarantee(planar_rows):
+    assert campaign.shielded_violations(planar_rows) == 0
+    for r in planar_rows:
+        if r["shield"] != "none":
+            assert r["nonviable"] == 0 and r["conflicts"] == 0, r
+    # the viability shield does not claim the jerk limit (and the policies break it: shown, not counted as broken);
+    # the jerk shield's rows are the full campaign's (and tests/test_envs_adversarial.py's)
+    assert _row(planar_rows, "viability", "bang_bang")["jerk/count"] > 0
+    assert "jerk" not in _row(planar_rows, "viability", "bang_bang")["claimed"]
+
+
+@pytest.mark.parametrize("policy", campaign.POLICY_CLASSES)
+def test_unshielded_rows_violate(planar_rows, policy):
+    r = _row(planar_rows, "none", policy)
+    assert r["position/count"] > 0 and r["velocity/count"] > 0, r
+    assert campaign.shielded_violations([r]) == 0  # nothing is claimed for "none"
+    claims = campaign.guaranteed("viability", campaign.TARGETS["planar arm"])
+    assert claims == ("position", "velocity", "acceleration", "torque")
+    assert campaign.shielded_violations([dict(r, claimed=list(claims))]) > 0  # the count can fail
+
+
+def _direct_nonfinite_count(n: int, episodes: int, seed: int) -> int:
+    """Steps whose ``nan_burst`` action has a non-finite entry, from the evaluator's key layout (episode keys
+    ``split(PRNGKey(seed), episodes)``; each splits into reset, episode and action keys)."""
+    policy = campaign.nan_burst_policy(n)
+
+    def episode(key):
+        _, k_episode, k_act = jax.random.split(key, 3)
+        keys = jnp.stack([k_episode, k_act])
+        actions = jax.vmap(lambda t: policy(None, None, keys, t))(jnp.arange(EPISODE))
+        return jnp.sum(~jnp.all(jnp.isfinite(actions), axis=-1))
+
+    return int(jnp.sum(jax.vmap(episode)(jax.random.split(jax.random.PRNGKey(seed), episodes))))
+
+
+def test_nan_substitutions_equal_a_direct_count(planar_rows):
+    expected = _direct_nonfinite_count(3, STEPS // EPISODE, seed=0)
+    assert expected > 0
+    for shield in ("viability", "none"):
+        assert _row(planar_rows, shield, "nan_burst")["nan_substituted"] == expected
+        assert all(_row(planar_rows, shield, p)["nan_substituted"] == 0 for p in campaign.POLICY_CLASSES[:-1])
+
+
+def test_random_walk_stays_in_the_box_with_small_steps():
+    policy = campaign.random_walk_policy(4, horizon=EPISODE)
+    keys = jnp.stack(jax.random.split(jax.random.PRNGKey(3)))
+    a = np.asarray(jax.vmap(lambda t: policy(None, None, keys, t))(jnp.arange(EPISODE)))
+    assert np.all(np.abs(a) <= 1.0)
+    steps = np.abs(np.diff(a, axis=0))
+    assert 0.03 < steps.mean() < 0.15 and steps.max() < 0.6  # increments of std 0.1 (folded at the bounds)
+    assert np.ptp(a, axis=0).min() > 0.3  # it wanders
+
+
+@pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+def test_wall_strike_with_impact_cap_and_cli_table(tmp_path):
+    """The contact target under the impact cap through the CLI: no guaranteed limit violated, strikes happen."""
+    from jaxlimits.training import cli
+
+    out = tmp_path / "campaign"
+    rc = cli.main(
+        [
+            "campaign",
+            "--targets",
+            "planar wall",
+            "--shields",
+            "viability+impact",
+            "--policies",
+            "toward_limit",
+            "--steps",
+            "10000",
+            "--chunk",
+            "50",
+            "--out",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    summary = json.loads((out / "campaign.json").read_text())
+    rows = summary["rows"]
+    assert [(r["shield"], r["policy"]) for r in rows] == [("viability+impact", "toward_limit")]
+    (r,) = rows
+    assert summary["shielded_violations"] == 0 and r["impact/count"] == 0 and r["strikes"] > 0
+    # pressing the wall with joints at their limits pushes them on (beyond the motors): counted, outside the claim
+    assert r["disturbed_steps"] > 0
+    table = (out / "campaign.md").read_text()
+    assert table.count("\n") == 2 + len(rows) and "| planar wall | viability+impact | toward_limit |" in table
+
+
+@pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+def test_bad_arguments_are_refused():
+    with pytest.raises(SystemExit, match="unknown target"):
+        campaign.main(["--targets", "hexapod"])
+    with pytest.raises(SystemExit, match="unknown policy class"):
+        campaign.main(["--policies", "gentle"])
+    with pytest.raises(SystemExit, match="--steps"):
+        campaign.main(["--steps", "nan"])
+    with pytest.raises(SystemExit, match="the targets' shields"):
+        campaign.main(["--targets", "UR5e", "--shields", "jerk"])

@@ -1,0 +1,522 @@
+"""The safety campaign: every shipped robot and supported third-party env, every shield, every policy class,
+counted at every step through the sharded evaluator (``jaxlimits campaign``, ``benchmarks/safety_campaign.py``).
+
+A *row* is (target, shield, policy class). Its episodes (``episode_length`` steps each, float32) run through one
+compiled ``evaluate.Evaluator`` per (target, shield): the policy class is a traced index in the policy's params,
+so all classes of a shield share one program, and the episodes run in chunks of ``chunk`` (a fresh seed each)
+until the row has ``steps`` env-steps. Per row: env-steps, position / velocity / jerk / torque / impact
+violations (violating env-steps and the worst excess over the limit, at every physics substep as the env
+measures it), non-viable steps (the shield found the state outside the viability kernel), torque-box
+conflicts, NaN/inf actions substituted by the braking action, strikes, wall time and env-steps/s, and
+``claim broken``: the violations of the limits the shield guarantees in steps no contact had pushed the arm
+(the guarantee's scope: a contact the motors cannot hold pushes a joint on, counted in the limit's column and
+as contact-disturbed steps) plus the strikes over the impulsive-torque bound (the impact cap's claim). The
+``none`` shield runs the same policies through the same code unshielded: its counts show that the policies
+do reach the limits (a campaign whose unshielded rows were clean would prove nothing).
+
+Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
+``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
+cap, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher`` and ``pusher`` under
+``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none), whose metrics ``EvaluatorMetrics``
+renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env. Gymnasium's
+envs step in C MuJoCo one env at a time, outside this jitted evaluator: their adversarial record is
+``tests/test_gym_shield.py`` and ``benchmarks/bench_gym_shield.py``.
+
+Policy classes (``POLICY_CLASSES``, actions in the env's normalised units, ``[-1, 1]`` = the action box):
+``toward_limit`` (full command toward a random limit per joint), ``bang_bang`` (random period 5-60 steps per
+joint), ``random`` (uniform in ``[-1.5, 1.5]``), ``random_walk`` (a walk in command space, steps of 0.1,
+reflected at ``±1``), ``nan_burst`` (uniform actions with bursts of NaN / ±inf / 1e30 entries, 1-5 steps every
+10-40 steps) and, given a trained run (``--trained RUN``), ``trained_noisy`` (the run's deterministic policy
+plus Gaussian noise of standard deviation ``noise``, in its own env).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxlimits._xla_flags import set_cpu_xla_flags
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from brax.envs.base import State, Wrapper
+
+from jaxlimits.envs.arm import VIOLATION_KEYS
+from jaxlimits.training import checkpoint, evaluate
+
+POLICY_CLASSES = ("toward_limit", "bang_bang", "random", "random_walk", "nan_burst")
+TRAINED = "trained_noisy"
+WALK_STEP = 0.1  # random_walk: standard deviation of one step's increment [normalised action units]
+BAD_VALUES = (jnp.nan, jnp.inf, -jnp.inf, 1e30)  # what nan_burst puts into an action
+
+
+def _reflect(x):
+    """``x`` folded into ``[-1, 1]`` by reflection at the bounds (a triangle wave of period 4)."""
+    y = jnp.mod(x + 1.0, 4.0)
+    return jnp.where(y <= 2.0, y - 1.0, 3.0 - y)
+
+
+def random_walk_policy(n: int, horizon: int, step: float = WALK_STEP):
+    """A random walk in command space ``(params, obs, key, t) -> action (n,)``: start uniform in ``[-1, 1]``,
+    Gaussian increments of standard deviation ``step``, reflected at ``±1``. Stateless (the evaluator's
+    policies are): the walk's ``horizon`` increments are drawn from the episode key and summed up to ``t``."""
+
+    def policy(params, obs, key, t):
+        del params, obs
+        k_start, k_inc = jax.random.split(jax.random.fold_in(key[0], 1))
+        start = jax.random.uniform(k_start, (n,), jnp.float32, -1.0, 1.0)
+        inc = step * jax.random.normal(k_inc, (horizon, n), jnp.float32)
+        taken = (jnp.arange(horizon) < t)[:, None]
+        return _reflect(start + jnp.sum(jnp.where(taken, inc, 0.0), axis=0))
+
+    return policy
+
+
+def nan_burst_policy(n: int):
+    """Uniform actions in ``[-1, 1]`` with bursts of non-finite or absurd entries: in every period of 10-40 steps
+    (drawn per episode) the first 1-5 steps carry, in each joint with probability 1/2, one of NaN, +inf, -inf,
+    1e30 (``BAD_VALUES``; at least one joint per burst step)."""
+    bad_values = jnp.asarray(BAD_VALUES, jnp.float32)
+
+    def policy(params, obs, key, t):
+        del params, obs
+        k_per, k_len = jax.random.split(jax.random.fold_in(key[0], 2))
+        period = jax.random.randint(k_per, (), 10, 41)
+        length = jax.random.randint(k_len, (), 1, 6)
+        k_act, k_mask, k_val = jax.random.split(jax.random.fold_in(key[1], t), 3)
+        action = jax.random.uniform(k_act, (n,), jnp.float32, -1.0, 1.0)
+        mask = jax.random.bernoulli(k_mask, 0.5, (n,)).at[0].set(True)
+        mask = jax.random.permutation(jax.random.fold_in(k_mask, 1), mask)
+        bad = bad_values[jax.random.randint(k_val, (n,), 0, len(BAD_VALUES))]
+        return jnp.where(mask & (t % period < length), bad, action)
+
+    return policy
+
+
+def campaign_policy(n: int, horizon: int, trained: Callable | None = None, noise: float = 0.3):
+    """One policy ``(params, obs, key, t)`` for every class: ``params["kind"]`` (int32 scalar) indexes
+    ``classes``; ``params["net"]`` are ``trained``'s parameters when it is given. Returns
+    ``(policy, classes)``."""
+    scripted = [evaluate.scripted_policy(k, n) for k in evaluate.SCRIPTED]
+    branches = scripted + [random_walk_policy(n, horizon), nan_burst_policy(n)]
+    classes = POLICY_CLASSES
+    if trained is not None:
+
+        def noisy(params, obs, key, t):
+            a = trained(params["net"], obs, key, t)
+            return a + noise * jax.random.normal(jax.random.fold_in(key[1], t), a.shape, a.dtype)
+
+        branches.append(noisy)
+        classes = classes + (TRAINED,)
+
+    def policy(params, obs, key, t):
+        fns = [lambda p, o, k, s, f=f: jnp.asarray(f(p, o, k, s), jnp.float32) for f in branches]
+        return jax.lax.switch(params["kind"], fns, params, obs, key, t)
+
+    return policy, classes
+
+
+class EvaluatorMetrics(Wrapper):
+    """A ``JointLimitShield`` env's metrics under the evaluator's names: ``count/<k>`` and ``violation/<k>`` for
+    ``VIOLATION_KEYS`` (the shield measures position, velocity and torque; the others are 0), ``viable``
+    (1 - ``shield/nonviable``), ``torque_box_conflict`` (``shield/torque_conflict``), ``disturbance``
+    (``shield/disturbance``: a contact pushed a shielded joint), ``distance`` (0 when the env has none)."""
+
+    def _rename(self, state: State) -> State:
+        m = dict(state.metrics)
+        zero = jnp.zeros_like(state.reward)
+        for k in VIOLATION_KEYS:
+            v = m.get(f"shield/{k}", zero)
+            m[f"violation/{k}"] = v
+            m[f"count/{k}"] = (v > 0).astype(jnp.float32)
+        m["viable"] = 1.0 - m["shield/nonviable"]
+        m["torque_box_conflict"] = m["shield/torque_conflict"]
+        m["disturbance"] = m["shield/disturbance"]
+        m.setdefault("distance", zero)
+        return state.replace(metrics=m)
+
+    def reset(self, rng):
+        return self._rename(self.env.reset(rng))
+
+    def step(self, state, action):
+        return self._rename(self.env.step(state, action))
+
+
+class InsideReset(Wrapper):
+    """``env.reset`` with the shielded joints clipped inside their ranges (``adversarial.inside_reset``): for
+    envs whose own reset starts at a limit (Brax ``pusher``), outside any guarantee."""
+
+    def __init__(self, env, margin: float = 0.01):
+        super().__init__(env)
+        from jaxlimits.envs.adversarial import inside_reset
+
+        self._reset = inside_reset(env, margin)
+
+    def reset(self, rng):
+        return self._reset(rng)
+
+
+@dataclass(frozen=True)
+class Target:
+    """A campaign target: ``make(shield) -> env`` (the evaluator's metrics; actions in ``[-1, 1]``), its shields."""
+
+    name: str
+    make: Callable
+    shields: tuple
+    measured: tuple = VIOLATION_KEYS  # the limits its env measures (the others show as "n/m")
+    torque_claimed: bool = True  # the shields guarantee the torque limit (see ``guaranteed``)
+
+
+def _arm(env_name: str):
+    def make(shield):
+        from jaxlimits.envs import SafetyWrapper
+        from jaxlimits.training.brax_ppo import make_base_env
+
+        method, *extras = shield.split("+")
+        return SafetyWrapper(
+            make_base_env(env_name),
+            method,
+            torque_box="torque_box" in extras,
+            impact=True if "impact" in extras else None,
+        )
+
+    return make
+
+
+def _third_party(make_env, inside: bool = False, **kwargs):
+    def make(shield):
+        from jaxlimits.envs import JointLimitShield
+        from jaxlimits.envs.nonfinite_guard import NonFiniteActionGuard
+
+        env = JointLimitShield(make_env(), method=shield, **kwargs)
+        return EvaluatorMetrics(NonFiniteActionGuard(InsideReset(env) if inside else env))
+
+    return make
+
+
+def _brax(name):
+    def make():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            import brax.envs
+
+        return brax.envs.get_environment(name, backend="mjx")
+
+    return make
+
+
+def _servo_panda():
+    from jaxlimits.envs.reach import make_servo_panda_reach
+
+    return make_servo_panda_reach()
+
+
+def _ur5e():
+    from jaxlimits.envs.reach import make_ur5e_reach
+
+    return make_ur5e_reach()
+
+
+ARM_SHIELDS = ("viability", "jerk", "viability+torque_box", "none")
+# JointLimitShield measures position, velocity and torque at every substep; its a_max comes from a quantile of
+# sampled states, so the actuators may saturate (counted): the torque limit is measured, not claimed
+_SHIELD_MEASURES = (("position", "velocity", "torque"), False)
+TARGETS = {
+    "planar arm": Target("planar arm", _arm("planar_reach"), ARM_SHIELDS),
+    "Panda (torque)": Target("Panda (torque)", _arm("panda_reach"), ARM_SHIELDS),
+    "planar wall": Target("planar wall", _arm("planar_wall"), ("viability+impact", "viability", "none")),
+    "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), *_SHIELD_MEASURES),
+    "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), *_SHIELD_MEASURES),
+    "brax reacher": Target(
+        "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), *_SHIELD_MEASURES
+    ),
+    "brax pusher": Target(
+        "brax pusher", _third_party(_brax("pusher"), inside=True, v_max=2.0), ("viability", "none"), *_SHIELD_MEASURES
+    ),
+}
+
+
+def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
+    """The trained run's own env (its config: action mode, observation) under its shield and ``none``."""
+    from jaxlimits.training import algos, brax_ppo
+
+    cfg, policy, params = algos.load_policy(run_dir)
+    own = cfg.shield + ("+impact" if cfg.impact else "")
+    shields = (own, "none") if cfg.shield != "none" else ("none",)
+
+    def make(shield):
+        method, *extras = shield.split("+")
+        return brax_ppo.env_from_config(cfg.override(shield=method, impact="impact" in extras))
+
+    target = Target(f"{cfg.env} (trained: {Path(run_dir).name})", make, shields)
+    return target, policy, params, cfg.action_repeat
+
+
+def run_row_set(
+    target: Target,
+    shield: str,
+    classes,
+    steps: int,
+    *,
+    episode_length: int = 200,
+    chunk: int = 1024,
+    trained=None,
+    action_repeat: int = 1,
+    seed: int = 0,
+    devices=None,
+) -> list[dict]:
+    """The rows of one (target, shield): every policy class in ``classes`` for at least ``steps`` env-steps.
+
+    ``trained``: ``(policy, params)`` of a trained run (then ``classes`` may hold ``TRAINED``). One
+    ``Evaluator`` (one compilation) serves every class; the chunks use seeds ``seed, seed + 1, ...``.
+    """
+    env = target.make(shield)
+    horizon = -(-episode_length // action_repeat)
+    policy, all_classes = campaign_policy(env.action_size, horizon, trained[0] if trained else None)
+    per_chunk = chunk * episode_length
+    n_chunks = max(1, -(-int(steps) // per_chunk))
+    ev = evaluate.Evaluator(
+        env, policy, episodes=chunk, episode_length=episode_length, action_repeat=action_repeat, devices=devices
+    )
+
+    def params_of(cls):
+        params = {"kind": jnp.asarray(all_classes.index(cls), jnp.int32)}
+        return params | {"net": trained[1]} if trained else params
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(ev.sharded(params_of(classes[0]), seed))  # compiles (timed apart from the rows)
+    compile_s = time.perf_counter() - t0
+    rows = []
+    for cls in classes:
+        params = params_of(cls)
+        t0 = time.perf_counter()
+        parts = [ev(params, seed + i) for i in range(n_chunks)]
+        wall = time.perf_counter() - t0
+        per = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        s = evaluate.summarize(per, episode_length)
+        row = {"target": target.name, "shield": shield, "policy": cls, "env_steps": s["env_steps"]}
+        row.update(claimed=list(guaranteed(shield, target)), measured=list(target.measured))
+        for k in VIOLATION_KEYS:
+            row[f"{k}/count"] = s[f"violations/{k}"]
+            row[f"{k}/worst"] = s[f"max_violation/{k}"]
+            row[f"{k}/undisturbed"] = s[f"undisturbed_violations/{k}"]
+        row.update(
+            nonviable=s["nonviable"],
+            conflicts=s["conflicts"],
+            disturbed_steps=s["disturbed_steps"],
+            nan_substituted=s["nonfinite_actions"],
+            strikes=s["strikes"],
+            wall_s=round(wall, 2),
+            compile_s=round(compile_s, 1),
+            env_steps_per_s=round(s["env_steps"] / wall, 1),
+        )
+        rows.append(row)
+    return rows
+
+
+def run(
+    targets,
+    steps: int,
+    *,
+    shields=None,
+    classes=POLICY_CLASSES,
+    trained_runs=(),
+    episode_length: int = 200,
+    chunk: int = 1024,
+    seed: int = 0,
+    progress: Callable | None = lambda line: print(line, flush=True),
+) -> list[dict]:
+    """Every row of ``targets`` (names in ``TARGETS``) and of each trained run; see ``run_row_set``."""
+    sets = [
+        (TARGETS[t], s, tuple(classes), None, 1)
+        for t in targets
+        for s in TARGETS[t].shields
+        if shields is None or s in shields
+    ]
+    for run_dir in trained_runs:
+        target, policy, params, repeat = _trained_target(run_dir)
+        sets += [(target, s, (TRAINED,), (policy, params), repeat) for s in target.shields]
+    rows = []
+    for target, shield, cls, trained, repeat in sets:
+        t0 = time.perf_counter()
+        new = run_row_set(
+            target,
+            shield,
+            cls,
+            steps,
+            episode_length=episode_length,
+            chunk=chunk,
+            trained=trained,
+            action_repeat=repeat,
+            seed=seed,
+        )
+        rows += new
+        if progress:
+            progress(f"{target.name} / {shield}: {len(new)} rows in {time.perf_counter() - t0:.0f} s (with compile)")
+    return rows
+
+
+COLUMNS = VIOLATION_KEYS  # position, velocity, acceleration, jerk, torque, impact
+
+
+def guaranteed(shield: str, target: Target | None = None) -> tuple:
+    """The limits ``shield`` guarantees on ``target``, of those its env measures: none for ``none``; position,
+    velocity, acceleration and torque for every bound method (torque: the arms' ``a_max`` is torque-derived;
+    not for ``JointLimitShield`` targets, ``Target.torque_claimed``), jerk for ``jerk``, the impulsive torque for
+    ``+impact``."""
+    if shield == "none":
+        return ()
+    method, *extras = shield.split("+")
+    claims = ("position", "velocity", "acceleration") + (("jerk",) if method == "jerk" else ())
+    claims += ("torque",) if target is None or target.torque_claimed else ()
+    claims += ("impact",) if "impact" in extras else ()
+    measured = VIOLATION_KEYS if target is None else target.measured
+    return tuple(k for k in claims if k in measured)
+
+
+def _cell(count: int, worst: float, claimed: bool) -> str:
+    """``count (worst excess)``; in bold where the shield guarantees the limit, in italics where it does not."""
+    text = "0" if count == 0 else f"{count:,} ({worst:.3g})"
+    return f"**{text}**" if claimed else f"*{text}*"
+
+
+def format_table(rows) -> str:
+    """A Markdown table: per row the violating env-steps (worst excess) per limit, bold where the shield guarantees
+    the limit, italic where it does not, ``n/m`` where the env does not measure it; ``claim broken``
+    (``claim_violations``), and the other counts."""
+    head = (
+        "| target | shield | policy | env-steps | position | velocity | acceleration | jerk | torque | impact "
+        "| claim broken | contact-disturbed steps | non-viable | conflicts | NaN substituted | strikes | wall s "
+        "| env-steps/s |"
+    )
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        cells = [r["target"], r["shield"], r["policy"], f"{r['env_steps']:,}"]
+        cells += [
+            _cell(r[f"{k}/count"], r[f"{k}/worst"], k in r["claimed"]) if k in r["measured"] else "n/m" for k in COLUMNS
+        ]
+        cells += [f"**{claim_violations(r):,}**" if r["claimed"] else "–", f"{r['disturbed_steps']:,}"]
+        cells += [f"{r['nonviable']:,}", f"{r['conflicts']:,}", f"{r['nan_substituted']:,}", f"{r['strikes']:,}"]
+        cells += [f"{r['wall_s']:.1f}", f"{r['env_steps_per_s']:,.0f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def by_shield(rows) -> list[dict]:
+    """``rows`` merged per (target, shield) over their policy classes: counts and env-steps summed, worst
+    excesses maxed, the policy column listing the classes (the README's compact table)."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["target"], r["shield"]), []).append(r)
+    merged = []
+    for group in groups.values():
+        m = dict(group[0], policy=", ".join(r["policy"] for r in group))
+        for k, v in group[0].items():
+            if k.endswith("/worst"):
+                m[k] = max(r[k] for r in group)
+            elif isinstance(v, (int, float)) and k not in ("compile_s", "env_steps_per_s"):
+                m[k] = sum(r[k] for r in group)
+        m["env_steps_per_s"] = m["env_steps"] / m["wall_s"]
+        merged.append(m)
+    return merged
+
+
+def claim_violations(row) -> int:
+    """Violating env-steps of ``row`` that break its shield's claim: the limits it guarantees (``guaranteed``),
+    counted in the steps no contact had pushed the arm since the episode began (the joint-limit guarantee's
+    scope: a contact the motors cannot hold pushes a joint on, counted apart), and every strike over the
+    impulsive-torque bound (the impact cap's claim, which is about contacts)."""
+    return sum(row[f"{k}/count" if k == "impact" else f"{k}/undisturbed"] for k in row["claimed"])
+
+
+def shielded_violations(rows) -> int:
+    """``claim_violations`` summed over ``rows``: the campaign's claim is that this is 0."""
+    return sum(claim_violations(r) for r in rows)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="jaxlimits campaign", description=__doc__.split("\n\n")[0])
+    p.add_argument("--steps", type=float, default=1e7, help="env-steps per row (default 1e7)")
+    p.add_argument("--targets", default=",".join(TARGETS), help=f"comma-separated, of: {', '.join(TARGETS)}")
+    p.add_argument("--shields", help="only these shields, comma-separated (default: each target's own)")
+    p.add_argument("--policies", default=",".join(POLICY_CLASSES), help="comma-separated policy classes")
+    p.add_argument("--trained", action="append", default=[], metavar="RUN", help="a trained run folder (repeatable)")
+    p.add_argument("--episode-length", type=int, default=200)
+    p.add_argument("--chunk", type=int, default=1024, help="episodes per compiled call")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="results/campaign", help="writes campaign.json and campaign.md here")
+    p.add_argument("--table", nargs="+", metavar="JSON", help="print the table of campaign.json files (no run)")
+    p.add_argument("--by-shield", action="store_true", help="with --table: one row per target and shield")
+    return p
+
+
+def main(argv=None) -> int:
+    set_cpu_xla_flags()
+    args = _parser().parse_args(argv)
+    if args.table:
+        rows = [r for path in args.table for r in json.loads(Path(path).read_text())["rows"]]
+        print(format_table(by_shield(rows) if args.by_shield else rows))
+        print(
+            json.dumps(
+                {
+                    "rows": len(rows),
+                    "env_steps": sum(r["env_steps"] for r in rows),
+                    "shielded_violations": shielded_violations(rows),
+                }
+            )
+        )
+        return 0
+    targets = [t for t in args.targets.split(",") if t]
+    unknown = sorted(set(targets) - set(TARGETS))
+    if unknown:
+        raise SystemExit(f"unknown target(s) {unknown}; valid: {list(TARGETS)}")
+    classes = tuple(c for c in args.policies.split(",") if c)
+    bad = sorted(set(classes) - set(POLICY_CLASSES))
+    if bad:
+        raise SystemExit(f"unknown policy class(es) {bad}; valid: {list(POLICY_CLASSES)}")
+    shields = None if args.shields is None else [x for x in args.shields.split(",") if x]
+    valid = {s for t in targets for s in TARGETS[t].shields}
+    if shields is not None and (not shields or set(shields) - valid):
+        raise SystemExit(f"--shields {args.shields!r}: the targets' shields are {sorted(valid)}")
+    if not math.isfinite(args.steps) or args.steps < 1:
+        raise SystemExit(f"--steps must be a finite number >= 1, got {args.steps}")
+    t0 = time.perf_counter()
+    rows = run(
+        targets,
+        int(args.steps),
+        shields=shields,
+        classes=classes,
+        trained_runs=args.trained,
+        episode_length=args.episode_length,
+        chunk=args.chunk,
+        seed=args.seed,
+    )
+    table = format_table(rows)
+    summary = {
+        "rows": rows,
+        "steps_per_row": int(args.steps),
+        "shielded_violations": shielded_violations(rows),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "devices": len(jax.devices()),
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint.atomic_write_text(out / "campaign.json", json.dumps(summary, indent=1))
+    checkpoint.atomic_write_text(out / "campaign.md", table + "\n")
+    print(table)
+    print(json.dumps({k: v for k, v in summary.items() if k != "rows"} | {"rows": len(rows)}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
