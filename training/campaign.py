@@ -230,18 +230,18 @@ def _ur5e():
 ARM_SHIELDS = ("viability", "jerk", "viability+torque_box", "none")
 # JointLimitShield measures position, velocity and torque at every substep; its a_max comes from a quantile of
 # sampled states, so the actuators may saturate (counted): the torque limit is measured, not claimed
-_SHIELD_MEASURES = (("position", "velocity", "torque"), False)
+_SHIELD_MEASURES = dict(measured=("position", "velocity", "torque"), torque_claimed=False)
 TARGETS = {
     "planar arm": Target("planar arm", _arm("planar_reach"), ARM_SHIELDS),
     "Panda (torque)": Target("Panda (torque)", _arm("panda_reach"), ARM_SHIELDS),
     "planar wall": Target("planar wall", _arm("planar_wall"), ("viability+impact", "viability", "none")),
-    "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), *_SHIELD_MEASURES),
-    "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), *_SHIELD_MEASURES),
+    "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES),
+    "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), **_SHIELD_MEASURES),
     "brax reacher": Target(
-        "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), *_SHIELD_MEASURES
+        "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), **_SHIELD_MEASURES
     ),
     "brax pusher": Target(
-        "brax pusher", _third_party(_brax("pusher"), inside=True, v_max=2.0), ("viability", "none"), *_SHIELD_MEASURES
+        "brax pusher", _third_party(_brax("pusher"), inside=True, v_max=2.0), ("viability", "none"), **_SHIELD_MEASURES
     ),
 }
 
