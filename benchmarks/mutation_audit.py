@@ -75,7 +75,7 @@ MUTANTS = [
     Mutant(
         "guard_stop_steps_dropped",
         "jaxlimits/_src/kinematic.py",
-        "stop_steps = jnp.ceil(v_max / (a_max * model.period))",
+        "stop_steps = jnp.ceil(v_reach / (a_max * model.period))",
         "stop_steps = 0.0",
         (
             f"{NET}::test_rounding_guard_is_the_documented_narrowing",
@@ -86,7 +86,7 @@ MUTANTS = [
     Mutant(
         "guard_margin_without_braking_term",
         "jaxlimits/_src/joint_state.py",
-        "m_q = eps * (jnp.maximum(jnp.abs(q_min), jnp.abs(q_max)) + 2.0 * v_max * v_max / a_max)",
+        "m_q = eps * (jnp.maximum(jnp.abs(q_min), jnp.abs(q_max)) + 2.0 * v_q * v_q / a_max)",
         "m_q = eps * jnp.maximum(jnp.abs(q_min), jnp.abs(q_max))",
         (f"{NET}::test_rounding_guard_is_the_documented_narrowing",),
         "the position margin forgets the velocity rounding's effect on the braking distance",

@@ -6,7 +6,9 @@ The full campaign (>= 10^7 env-steps per row, every target) is ``benchmarks/safe
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -126,10 +128,35 @@ def test_wall_strike_with_impact_cap_and_cli_table(tmp_path):
     assert [(r["shield"], r["policy"]) for r in rows] == [("viability+impact", "toward_limit")]
     (r,) = rows
     assert summary["shielded_violations"] == 0 and r["impact/count"] == 0 and r["strikes"] > 0
+    assert 0 <= r["impact_infeasible"] <= r["env_steps"]  # steps where the box could not meet the cap's halfspace
     # pressing the wall with joints at their limits pushes them on (beyond the motors): counted, outside the claim
     assert r["disturbed_steps"] > 0
     table = (out / "campaign.md").read_text()
     assert table.count("\n") == 2 + len(rows) and "| planar wall | viability+impact | toward_limit |" in table
+
+
+@pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+def test_mutation_step_runs_the_audit(tmp_path):
+    """``--mutation`` runs benchmarks/mutation_audit.py on a copy of the repository: the float32 rounding-guard
+    mutant is killed by its tests, and campaign.json, the table's foot and the exit status say so."""
+    out = tmp_path / "mutation"
+    rc = campaign.main(["--targets", "", "--mutation", "--mutants", "guard_eps_float32", "--out", str(out)])
+    summary = json.loads((out / "campaign.json").read_text())
+    m = summary["mutation"]
+    assert rc == 0 and m["rc"] == 0 and campaign.mutation_survivors(summary) == 0
+    assert m["killed"] == ["guard_eps_float32"] and m["summary"]["killed"] == 1 and summary["rows"] == []
+    assert "mutation audit: 1 mutants: 1 killed; every mutant killed or equivalent" in (out / "campaign.md").read_text()
+
+
+def test_mutation_table_matches_the_code():
+    """Every mutant's text occurs exactly once in its file and its tests exist: a refactor that moves a formula
+    must retarget the row (two rows had gone stale unnoticed until the campaign's mutation step ran them)."""
+    spec = importlib.util.spec_from_file_location("mutation_audit", campaign.MUTATION_AUDIT)
+    audit = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = audit  # its dataclasses look their module up
+    spec.loader.exec_module(audit)
+    assert len(audit.MUTANTS) >= 15
+    audit.check_table(audit.ROOT, audit.MUTANTS)  # SystemExit(2) naming the stale rows otherwise
 
 
 @pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")

@@ -14,7 +14,7 @@ from jaxlimits.envs.robot import Robot
 
 POLICIES = ("upper", "lower", "bang_bang", "uniform")
 EPISODE = 200  # steps between resets
-EPISODES_PER_POLICY = 25  # 4 policies x 25 x 200 = 2e4 env-steps per env and method
+EPISODES_PER_POLICY = 10  # 4 policies x 10 x 200 = 8e3 env-steps per env and method (the campaign runs 1e5+)
 BASELINE_EPISODES = EPISODES_PER_POLICY  # the same policies, seeds and steps as the shielded runs
 V_MAX = {"Pusher-v5": 2.0, "Reacher-v5": 4.0}
 # a position violation of the shielded stock Pusher must follow, within this many steps, a step in which
@@ -98,7 +98,7 @@ def _free_error(r):
 # ---- (a) adversarial policies, shielded vs unshielded ------------------------------------------------
 def test_reacher_shielded_never_violates(rollouts):
     r = rollouts["Reacher-v5", "viability"]
-    assert len(r["position"]) >= 20_000
+    assert len(r["position"]) >= 8_000
     assert np.sum(r["position"] > 0) == 0, r["position"].max()
     assert np.sum(r["velocity"] > 0) == 0, r["velocity"].max()
     assert r["tally"]["position_violations"] == r["tally"]["velocity_violations"] == 0
@@ -113,7 +113,7 @@ def test_pusher_shielded_violates_only_after_contact(rollouts):
     (it depends on the acceleration), so the state can leave the viability kernel and overshoot. Without
     contacts the same policies give none (``test_pusher_without_contacts_never_violates_and_realises_exactly``)."""
     r = rollouts["Pusher-v5", "viability"]
-    assert len(r["position"]) >= 20_000
+    assert len(r["position"]) >= 8_000
     viol = (r["position"] > 0) | (r["velocity"] > 0)
     print(
         f"\nshielded Pusher: {int(viol.sum())} violating steps, all within {int(np.max(r['since'][viol], initial=0))} "
@@ -240,10 +240,19 @@ def test_missing_v_max_and_unsupported_actuator():
         Robot.from_model(mujoco.MjModel.from_xml_string(filt), v_max=1.0)
 
 
-@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e12])
-def test_nonfinite_action_brakes(bad):
+@pytest.fixture(scope="module")
+def pusher():
+    """One shielded Pusher for the NaN tests (building and compiling a wrapper takes ~10 s)."""
     env = _make("Pusher-v5")
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e12])
+def test_nonfinite_action_brakes(pusher, bad):
+    env = pusher
     d = env.unwrapped.data
+    env.reset_tally()
     env.reset(seed=5)
     for _ in range(20):
         env.step(np.full(7, 2.0))

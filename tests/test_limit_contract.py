@@ -39,7 +39,15 @@ def call(method, integrator, substeps, q, v, a_prev, rounding_guard=True):
 
 
 def curve_speed(d, integrator, substeps):
-    """The speed on this discretisation's viability curve at distance ``d`` from the upper limit (bisection)."""
+    """The speed on this discretisation's viability curve at distance ``d`` (any shape ``(..., 3)``) from the
+    upper limit (bisection; cached, the same distances recur over the parametrised tests)."""
+    d = np.asarray(d, np.float64)
+    return _curve_speed(d.tobytes(), d.shape, integrator, substeps).copy()
+
+
+@functools.lru_cache(maxsize=None)
+def _curve_speed(d_bytes, shape, integrator, substeps):
+    d = np.frombuffer(d_bytes, np.float64).reshape(shape)
     lo, hi = np.zeros_like(d), np.full_like(d, 10.0)
     q = np.asarray(LIM.q_max) - d
     for _ in range(60):
@@ -168,7 +176,7 @@ def _ride_upper_bound(method, integrator, substeps, steps=120):
     rng = np.random.default_rng(3)
     q_max = np.asarray(LIM.q_max)
     d = np.geomspace(1e-6, 0.3, 64)[:, None] * (q_max - np.asarray(LIM.q_min))
-    vc = np.stack([curve_speed(row, integrator, substeps) for row in d])
+    vc = curve_speed(d, integrator, substeps)
     q = (q_max - d).astype(np.float32)
     v = (vc * rng.uniform(0.5, 1.0, vc.shape)).astype(np.float32)
     limit = jl.make_limit(method, LIM, DT, integrator, substeps)

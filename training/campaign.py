@@ -7,7 +7,9 @@ so all classes of a shield share one program, and the episodes run in chunks of 
 until the row has ``steps`` env-steps. Per row: env-steps, position / velocity / jerk / torque / impact
 violations (violating env-steps and the worst excess over the limit, at every physics substep as the env
 measures it), non-viable steps (the shield found the state outside the viability kernel), torque-box
-conflicts, NaN/inf actions substituted by the braking action, strikes, wall time and env-steps/s, and
+conflicts, steps whose impact-cap halfspace the acceleration box could not meet (``cap infeasible``: the
+projection met it with least violation, ``SafetyWrapper``'s ``impact_infeasible``), NaN/inf actions substituted by
+the braking action, strikes, wall time and env-steps/s, and
 ``claim broken``: the violations of the limits the shield guarantees in steps no contact had pushed the arm
 (the guarantee's scope: a contact the motors cannot hold pushes a joint on, counted in the limit's column and
 as contact-disturbed steps) plus the strikes over the impulsive-torque bound (the impact cap's claim). The
@@ -18,9 +20,11 @@ Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reac
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
 cap, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher`` and ``pusher`` under
 ``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none), whose metrics ``EvaluatorMetrics``
-renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env. Gymnasium's
-envs step in C MuJoCo one env at a time, outside this jitted evaluator: their adversarial record is
-``tests/test_gym_shield.py`` and ``benchmarks/bench_gym_shield.py``.
+renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env; and Gymnasium's
+``Reacher-v5`` and ``Pusher-v5`` under ``JointLimitShieldWrapper`` (viability, none; ``campaign_gym``), the same
+policy classes, episode keys and columns, but not through the evaluator: one env at a time in C MuJoCo, the
+policy called from Python each step, at CPU speed (a few hundred to a few thousand env-steps/s, one core; size
+``--steps`` for them). Each target's ``rows`` method runs its rows (``run_row_set`` for the Brax ones).
 
 Policy classes (``POLICY_CLASSES``, actions in the env's normalised units, ``[-1, 1]`` = the action box):
 ``toward_limit`` (full command toward a random limit per joint), ``bang_bang`` (random period 5-60 steps per
@@ -28,6 +32,10 @@ joint), ``random`` (uniform in ``[-1.5, 1.5]``), ``random_walk`` (a walk in comm
 reflected at ``±1``), ``nan_burst`` (uniform actions with bursts of NaN / ±inf / 1e30 entries, 1-5 steps every
 10-40 steps) and, given a trained run (``--trained RUN``), ``trained_noisy`` (the run's deterministic policy
 plus Gaussian noise of standard deviation ``noise``, in its own env).
+
+The mutation step (``--mutation``, ``mutation_audit``) runs ``benchmarks/mutation_audit.py``: plausible bugs in
+the core, one at a time in a copy of the repository; the tests behind the bounds' claims must kill each (a
+survivor makes the campaign exit 1). Its line closes the table and its summary is in ``campaign.json``.
 """
 
 from __future__ import annotations
@@ -35,6 +43,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
+import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -53,6 +63,7 @@ with warnings.catch_warnings():
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
 from jaxlimits.training import checkpoint, evaluate
+from jaxlimits.training.campaign_gym import GYM_TARGETS
 
 POLICY_CLASSES = ("toward_limit", "bang_bang", "random", "random_walk", "nan_burst")
 TRAINED = "trained_noisy"
@@ -176,6 +187,10 @@ class Target:
     measured: tuple = VIOLATION_KEYS  # the limits its env measures (the others show as "n/m")
     torque_claimed: bool = True  # the shields guarantee the torque limit (see ``guaranteed``)
 
+    def rows(self, shield: str, classes, steps: int, **kwargs) -> list[dict]:
+        """The rows of (this target, ``shield``): ``run_row_set``."""
+        return run_row_set(self, shield, classes, steps, **kwargs)
+
 
 def _arm(env_name: str):
     def make(shield):
@@ -243,6 +258,7 @@ TARGETS = {
     "brax pusher": Target(
         "brax pusher", _third_party(_brax("pusher"), inside=True, v_max=2.0), ("viability", "none"), **_SHIELD_MEASURES
     ),
+    **GYM_TARGETS,  # Gymnasium's Reacher-v5 and Pusher-v5 (GymTarget: C MuJoCo, one env at a time)
 }
 
 
@@ -314,6 +330,7 @@ def run_row_set(
             nonviable=s["nonviable"],
             conflicts=s["conflicts"],
             disturbed_steps=s["disturbed_steps"],
+            impact_infeasible=s["impact_infeasible"],
             nan_substituted=s["nonfinite_actions"],
             strikes=s["strikes"],
             wall_s=round(wall, 2),
@@ -336,7 +353,8 @@ def run(
     seed: int = 0,
     progress: Callable | None = lambda line: print(line, flush=True),
 ) -> list[dict]:
-    """Every row of ``targets`` (names in ``TARGETS``) and of each trained run; see ``run_row_set``."""
+    """Every row of ``targets`` (names in ``TARGETS``) and of each trained run: each target's ``rows``
+    (``run_row_set``, ``campaign_gym.GymTarget.rows``)."""
     sets = [
         (TARGETS[t], s, tuple(classes), None, 1)
         for t in targets
@@ -349,8 +367,7 @@ def run(
     rows = []
     for target, shield, cls, trained, repeat in sets:
         t0 = time.perf_counter()
-        new = run_row_set(
-            target,
+        new = target.rows(
             shield,
             cls,
             steps,
@@ -396,8 +413,8 @@ def format_table(rows) -> str:
     (``claim_violations``), and the other counts."""
     head = (
         "| target | shield | policy | env-steps | position | velocity | acceleration | jerk | torque | impact "
-        "| claim broken | contact-disturbed steps | non-viable | conflicts | NaN substituted | strikes | wall s "
-        "| env-steps/s |"
+        "| claim broken | contact-disturbed steps | non-viable | conflicts | cap infeasible | NaN substituted "
+        "| strikes | wall s | env-steps/s |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
@@ -406,7 +423,12 @@ def format_table(rows) -> str:
             _cell(r[f"{k}/count"], r[f"{k}/worst"], k in r["claimed"]) if k in r["measured"] else "n/m" for k in COLUMNS
         ]
         cells += [f"**{claim_violations(r):,}**" if r["claimed"] else "–", f"{r['disturbed_steps']:,}"]
-        cells += [f"{r['nonviable']:,}", f"{r['conflicts']:,}", f"{r['nan_substituted']:,}", f"{r['strikes']:,}"]
+        cells += [
+            f"{r['nonviable']:,}",
+            f"{r['conflicts']:,}",
+            f"{r['impact_infeasible']:,}" if "impact_infeasible" in r else "–",
+        ]
+        cells += [f"{r['nan_substituted']:,}", f"{r['strikes']:,}"]
         cells += [f"{r['wall_s']:.1f}", f"{r['env_steps_per_s']:,.0f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -444,6 +466,51 @@ def shielded_violations(rows) -> int:
     return sum(claim_violations(r) for r in rows)
 
 
+MUTATION_AUDIT = Path(__file__).resolve().parents[1] / "benchmarks" / "mutation_audit.py"
+
+
+def mutation_audit(words=(), timeout: float = 900.0, echo: Callable | None = None) -> dict:
+    """The campaign's mutation step: ``benchmarks/mutation_audit.py`` (plausible bugs in the core, applied one at a
+    time to a copy of the repository; the tests behind the bounds' claims must kill each) as a subprocess.
+
+    ``words``: only the mutants whose name contains one of them (all by default); ``timeout`` [s] per mutant;
+    ``echo(line)`` sees the audit's output as it comes. Returns the audit's summary line (``{"summary": {status:
+    count}, "killed": [...], "survived": [...], "equivalent": [...], "error": [...], "timeout": [...]}``) plus
+    ``rc`` and ``wall_s``. Raises ``FileNotFoundError`` outside a repository checkout and ``RuntimeError``
+    (with the output's tail) when the audit stopped before its summary (table out of date, copy not importable).
+    """
+    if not MUTATION_AUDIT.is_file():
+        raise FileNotFoundError(f"the mutation step needs a repository checkout: {MUTATION_AUDIT} is missing")
+    cmd = [sys.executable, str(MUTATION_AUDIT), *words, "--timeout", str(timeout)]
+    t0 = time.perf_counter()
+    lines = []
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        for line in proc.stdout:
+            lines.append(line.rstrip("\n"))
+            if echo:
+                echo(lines[-1])
+    summary = next((json.loads(x) for x in reversed(lines) if x.startswith('{"summary"')), None)
+    if summary is None:
+        tail = "\n".join(lines[-30:])
+        raise RuntimeError(f"mutation audit stopped before its summary (rc={proc.returncode}):\n{tail}")
+    return summary | {"rc": proc.returncode, "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def mutation_survivors(summary: dict) -> int:
+    """Mutants of ``summary["mutation"]`` neither killed nor documented equivalent (0 without a mutation step)."""
+    m = summary.get("mutation")
+    return 0 if m is None else len(m["survived"]) + len(m["error"]) + len(m["timeout"])
+
+
+def mutation_line(result: dict) -> str:
+    """One line for the table's foot: how many mutants, and which survived (the claim: none)."""
+    counts = result["summary"]
+    text = ", ".join(f"{n} {status}" for status, n in counts.items() if n)
+    survivors = result["survived"] + result["error"] + result["timeout"]
+    verdict = "every mutant killed or equivalent" if not survivors else f"NOT KILLED: {', '.join(survivors)}"
+    return f"mutation audit: {sum(counts.values())} mutants: {text}; {verdict} ({result['wall_s']:.0f} s)"
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxlimits campaign", description=__doc__.split("\n\n")[0])
     p.add_argument("--steps", type=float, default=1e7, help="env-steps per row (default 1e7)")
@@ -455,6 +522,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--chunk", type=int, default=1024, help="episodes per compiled call")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="results/campaign", help="writes campaign.json and campaign.md here")
+    p.add_argument(
+        "--mutation",
+        action="store_true",
+        help="also run the mutation audit (benchmarks/mutation_audit.py); exit 1 if a mutant survives",
+    )
+    p.add_argument("--mutants", default="", help="with --mutation: only mutants whose name contains these (comma)")
     p.add_argument("--table", nargs="+", metavar="JSON", help="print the table of campaign.json files (no run)")
     p.add_argument("--by-shield", action="store_true", help="with --table: one row per target and shield")
     return p
@@ -464,8 +537,12 @@ def main(argv=None) -> int:
     set_cpu_xla_flags()
     args = _parser().parse_args(argv)
     if args.table:
-        rows = [r for path in args.table for r in json.loads(Path(path).read_text())["rows"]]
+        runs = [json.loads(Path(path).read_text()) for path in args.table]
+        rows = [r for one in runs for r in one["rows"]]
         print(format_table(by_shield(rows) if args.by_shield else rows))
+        for one in runs:
+            if "mutation" in one:
+                print(mutation_line(one["mutation"]))
         print(
             json.dumps(
                 {
@@ -506,16 +583,22 @@ def main(argv=None) -> int:
         "rows": rows,
         "steps_per_row": int(args.steps),
         "shielded_violations": shielded_violations(rows),
-        "wall_s": round(time.perf_counter() - t0, 1),
         "devices": len(jax.devices()),
     }
+    if args.mutation:
+        summary["mutation"] = mutation_audit([w for w in args.mutants.split(",") if w], echo=print)
+        table += "\n\n" + mutation_line(summary["mutation"])
+    summary["wall_s"] = round(time.perf_counter() - t0, 1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     checkpoint.atomic_write_text(out / "campaign.json", json.dumps(summary, indent=1))
     checkpoint.atomic_write_text(out / "campaign.md", table + "\n")
     print(table)
-    print(json.dumps({k: v for k, v in summary.items() if k != "rows"} | {"rows": len(rows)}))
-    return 0
+    brief = {k: v for k, v in summary.items() if k not in ("rows", "mutation")} | {"rows": len(rows)}
+    if args.mutation:
+        brief["mutation"] = summary["mutation"]["summary"]
+    print(json.dumps(brief))
+    return 0 if mutation_survivors(summary) == 0 else 1
 
 
 if __name__ == "__main__":

@@ -131,6 +131,7 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
             # steps that began outside the viability kernel / whose bounds conflicted with the torque box
             "nonviable": prev["nonviable"] + (1.0 - m.get("viable", 1.0)),
             "conflicts": prev["conflicts"] + m.get("torque_box_conflict", 0.0),
+            "impact_infeasible": prev["impact_infeasible"] + (m.get("impact_infeasible", 0.0) > 0),
         }
         # from the first step a contact pushed the arm (metric "disturbance" > 0) to the episode's end the
         # trajectory is disturbed: the joint-limit guarantee covers the undisturbed steps (an impact's own
@@ -143,7 +144,7 @@ def _episode(env, policy, params, key, episode_length: int, action_repeat: int =
 
     zero = jnp.zeros((), jnp.float32)
     acc0 = {"return": zero, "intervention": zero, "nonfinite_actions": zero, "strikes": zero, "max_strike_ratio": zero}
-    acc0.update(nonviable=zero, conflicts=zero, disturbed_steps=zero)
+    acc0.update(nonviable=zero, conflicts=zero, impact_infeasible=zero, disturbed_steps=zero)
     acc0.update({f"undisturbed/count/{k}": zero for k in VIOLATION_KEYS})
     acc0.update({f"count/{k}": zero for k in VIOLATION_KEYS})
     acc0.update({f"max/{k}": zero for k in VIOLATION_KEYS})
@@ -244,6 +245,7 @@ def summarize(per_episode: dict, episode_length: int, success_radius: float = SU
         "nonfinite_actions": int(np.sum(per_episode["nonfinite_actions"])),
         "nonviable": int(np.sum(per_episode["nonviable"], dtype=np.float64)),
         "conflicts": int(np.sum(per_episode["conflicts"], dtype=np.float64)),
+        "impact_infeasible": int(np.sum(per_episode["impact_infeasible"], dtype=np.float64)),
         "disturbed_steps": int(np.sum(per_episode["disturbed_steps"], dtype=np.float64)),
     }
     for k in VIOLATION_KEYS:
