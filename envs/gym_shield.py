@@ -93,6 +93,7 @@ def _zero_tally() -> dict:
         "nonfinite": 0,
         "nonviable": 0,
         "constrained": 0,
+        "disturbed": 0,
         "torque_conflict": 0,
         "beyond_bounds": 0,
         "contact_corrected": 0,
@@ -129,7 +130,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
       a_prev: ``(n,)`` float32, the last step's ``a_safe`` (zeros after ``reset``; ``"jerk"`` uses it).
       tally: running totals over the steps since construction (``reset_tally()`` zeroes them): counts
         ``steps``, ``position_violations``, ``velocity_violations``, ``torque_violations`` (steps with
-        a positive excess), ``saturated``, ``nonfinite``, ``nonviable``, ``constrained`` (steps), and
+        a positive excess), ``saturated``, ``nonfinite``, ``nonviable``, ``constrained``, ``disturbed``
+        (steps with ``info["shield"]["disturbance"]``), and
         the largest ``max_position_excess`` [rad or m], ``max_velocity_excess`` [rad/s or m/s],
         ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2],
         and ``beyond_bounds``, ``contact_corrected`` (steps) with their largest values (``max_*``).
@@ -185,6 +187,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         self._h = float(rob.timestep)
         # solver roundoff at the bounds is not counted as a contact correction
         self._correct_tol = BOUNDS_TOL * np.broadcast_to(np.asarray(lim.a_max, np.float64), (n,))
+        self._joint_ids = np.asarray(rob.joint_ids)
+        self._jtf = np.zeros(int(base.model.nv))  # J^T f buffer of ``_disturbed``
         self.a_prev = np.zeros(n, np.float32)
         self.tally = _zero_tally()
         self._records = []
@@ -266,6 +270,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
 
         V[0] = d.qvel[dofs]
         corrected = 0.0
+        disturbed = False
         for k in range(n_frames):
             if k:
                 _, M, f = act.smooth_stage(d, ctrl, want_a_des=False)
@@ -276,6 +281,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
             Q[k] = d.qpos[qadr]
             V[k + 1] = d.qvel[dofs]
             C[k] = d.qfrc_constraint[dofs]
+            if not disturbed and np.any(C[k] != 0.0):
+                disturbed = self._disturbed(m, d)
             TE[k] = inv.torque_excess
             S[k] = inv.saturated
         mujoco.mj_rnePostConstraint(m, d)
@@ -300,6 +307,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "viable": bool(np.all(out[3 * n : 4 * n] > 0.5)),
                 "torque_conflict": bool(out[4 * n + 1] > 0.5),
                 "constrained": bool(np.any(C != 0.0)),
+                "disturbance": disturbed,
                 "accel_error": accel_error,
                 "contact_corrected": corrected,
                 "a_des": a_des,
@@ -309,6 +317,19 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "beyond_bounds": max(float(np.max(np.maximum(a_safe - upper, lower - a_safe))), 0.0),
             }
         )
+
+    def _disturbed(self, m, d) -> bool:
+        """Did a constraint force other than the shielded joints' own limit rows act on a shielded dof this
+        substep (``J^T f`` on the shielded dofs with those rows left out)? MuJoCo's joint-limit rows act only
+        past a limit (margin 0; under RK4 at a stage past it): counting them would excuse the overshoot that
+        set them off. What remains is a contact, an equality, a tendon limit, friction loss: a disturbance
+        the bounds do not model (the evaluator's ``disturbance``)."""
+        n = d.nefc
+        own = (d.efc_type[:n] == mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT) & np.isin(d.efc_id[:n], self._joint_ids)
+        if not own.any():
+            return True
+        mujoco.mj_mulJacTVec(m, d, self._jtf, np.where(own, 0.0, d.efc_force[:n]))
+        return bool(np.any(self._jtf[self._dofs] != 0.0))
 
     def _buffers(self, n_frames: int):
         """Per-substep records, reused (cached per ``n_frames``): positions ``Q (n_frames, n)``, velocities
@@ -341,7 +362,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         step's substeps [rad or m, rad/s or m/s, N m or N], 0.0 when none. ``info["shield"]``:
         ``intervention`` (``max |a_safe - a_des|`` over the finite entries [rad/s^2]), ``saturated``,
         ``nonfinite``, ``viable``, ``constrained``, ``torque_conflict`` (bools; ``constrained``: a contact or
-        limit force acted on a shielded dof in some substep; ``torque_conflict``: no acceleration inside the
+        limit force acted on a shielded dof in some substep; ``disturbance``: one other than the shielded
+        joints' own limit rows did, a contact mostly, ``_disturbed``; ``torque_conflict``: no acceleration inside the
         bounds' position/velocity/viability terms was realisable at the step's start, see ``SafeAcceleration``),
         ``beyond_bounds`` (how far ``a_safe`` left ``[lower, upper]`` [rad/s^2]: the acceleration or jerk limit
         given way where no acceleration inside it was realisable), ``contact_corrected`` (how far a contact
@@ -371,7 +393,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
                 "contact_corrected",
             ):
                 rec[k] = max(rec[k], r[k])
-            for k in ("saturated", "nonfinite", "constrained", "torque_conflict"):
+            for k in ("saturated", "nonfinite", "constrained", "disturbance", "torque_conflict"):
                 rec[k] = rec[k] or r[k]
             rec["viable"] = rec["viable"] and r["viable"]
         info = dict(info)
@@ -386,6 +408,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         t["nonfinite"] += rec["nonfinite"]
         t["nonviable"] += not rec["viable"]
         t["constrained"] += rec["constrained"]
+        t["disturbed"] += rec["disturbance"]
         t["torque_conflict"] += rec["torque_conflict"]
         t["max_accel_error"] = max(t["max_accel_error"], rec["accel_error"])
         t["max_intervention"] = max(t["max_intervention"], rec["intervention"])

@@ -46,7 +46,8 @@ def _rollout(env, episodes_per_policy, seed=0):
     """Runs every policy for ``episodes_per_policy`` episodes of ``EPISODE`` steps; returns per-step arrays."""
     rng = np.random.default_rng(seed)
     lo, hi = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
-    rec = {k: [] for k in ("position", "velocity", "torque", "accel_error", "saturated", "constrained", "since")}
+    keys = ("position", "velocity", "torque", "accel_error", "saturated", "constrained", "disturbance", "since")
+    rec = {k: [] for k in keys}
     t0 = time.perf_counter()
     for p, policy in enumerate(POLICIES):
         for ep in range(episodes_per_policy):
@@ -59,7 +60,7 @@ def _rollout(env, episodes_per_policy, seed=0):
                 since = 0 if s["constrained"] else since + 1
                 for k in ("position", "velocity", "torque"):
                     rec[k].append(info["violation"][k])
-                for k in ("accel_error", "saturated", "constrained"):
+                for k in ("accel_error", "saturated", "constrained", "disturbance"):
                     rec[k].append(s[k])
                 rec["since"].append(since)
     out = {k: np.asarray(v) for k, v in rec.items()}
@@ -138,6 +139,23 @@ def test_unshielded_baseline_violates(rollouts, env_id):
     assert base["tally"]["velocity_violations"] == np.sum(base["velocity"] > 0)
 
 
+@pytest.mark.parametrize("env_id", list(V_MAX))
+def test_disturbance_is_a_constraint_force_other_than_the_joints_own_limits(rollouts, env_id):
+    """``info["shield"]["disturbance"]``: a constraint force on a shielded dof that is not the shielded joints' own
+    limit rows. Unshielded, the arms run into their limits (limit rows act: ``constrained``); Reacher has no contact
+    with its arm, so none of that is a disturbance; Pusher's arm hits its table, which is. Always within
+    ``constrained``; counted in the tally."""
+    base = rollouts[env_id, "none"]
+    constrained, disturbance = base["constrained"].astype(bool), base["disturbance"].astype(bool)
+    assert not np.any(disturbance & ~constrained)
+    assert constrained.sum() > disturbance.sum()  # the limit rows alone: constrained, not disturbed
+    if env_id == "Reacher-v5":
+        assert disturbance.sum() == 0
+    else:
+        assert disturbance.sum() > 0
+    assert base["tally"]["disturbed"] == disturbance.sum()
+
+
 def test_pusher_without_contacts_never_violates_and_realises_exactly():
     """(d) Pusher with contacts disabled: 0 violations under the adversarial policies, and the held acceleration
     is realised to float64 roundoff, checked from the env's own data over the whole step:
@@ -159,7 +177,7 @@ def test_pusher_without_contacts_never_violates_and_realises_exactly():
                 assert info["violation"]["position"] == info["violation"]["velocity"] == 0.0
                 if s["saturated"]:
                     continue
-                assert not s["constrained"]
+                assert not s["constrained"] and not s["disturbance"]
                 worst_step = max(worst_step, float(np.max(np.abs((d.qvel[rob.dof_adr] - v0) / T - s["a_safe"]))))
                 worst_sub = max(worst_sub, s["accel_error"])
                 steps += 1

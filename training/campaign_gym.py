@@ -37,9 +37,8 @@ the episode's end, the rule of ``evaluate``'s ``disturbed`` accumulation (the Br
 constraint force on a shielded dof while the joints are inside their limits). The wrapper's ``info["shield"]
 ["constrained"]`` counts the limit rows too (MuJoCo's, margin 0, act only beyond a limit, or, under RK4, at a
 stage beyond it): taken as the disturbance it would excuse the overshoot that set them off, and the rest of its
-episode. So the rows read each substep's constraint rows themselves (a shim on the wrapper's
-``actuation.finish_substep``, where the substep's constraint solve and integration happen): the force
-``J^T f`` on the shielded dofs with the shielded joints' limit rows left out.
+episode. So the rows read the wrapper's ``info["shield"]["disturbance"]`` (``JointLimitShieldWrapper._disturbed``:
+``J^T f`` on the shielded dofs with the shielded joints' limit rows left out).
 
 Speed: C MuJoCo, one env, one XLA call and a policy call per step, from Python: a few hundred to a few thousand
 env-steps/s on a CPU core (the Brax rows run thousands of episodes at once).
@@ -53,7 +52,6 @@ import warnings
 from dataclasses import dataclass
 from typing import Callable
 
-import mujoco
 import numpy as np
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
@@ -100,53 +98,6 @@ def to_action_box(a, low, high) -> np.ndarray:
     return low + (np.asarray(a, np.float64) + 1.0) * 0.5 * (high - low)
 
 
-class _ContactProbe:
-    """Per step: did a constraint force other than the shielded joints' own limit rows act on a shielded dof (a
-    contact, mostly) in some substep? A shim on ``shield.actuation.finish_substep`` (each substep's constraint
-    solve and integration, ``CActuation``), reading the substep's constraint rows as the wrapper reads their
-    ``qfrc_constraint``; ``reset()`` before each ``env.step``."""
-
-    def __init__(self, shield):
-        rob = shield.robot
-        self._m = shield.unwrapped.model
-        self._dofs, self._joints = np.asarray(rob.dof_adr), np.asarray(rob.joint_ids)
-        self._res = np.zeros(self._m.nv)
-        self.contact = False
-        act = shield.actuation
-        finish = act.finish_substep
-
-        def finish_substep(d, *args, **kwargs):
-            out = finish(d, *args, **kwargs)
-            if not self.contact and np.any(d.qfrc_constraint[self._dofs] != 0.0):  # the wrapper's "constrained"
-                self.contact = self._not_own_limits(d)
-            return out
-
-        act.finish_substep = finish_substep  # an instance attribute, shadowing the method
-
-    def _not_own_limits(self, d) -> bool:
-        """``J^T f`` on the shielded dofs, the shielded joints' limit rows left out, is not 0."""
-        n = d.nefc
-        own = (d.efc_type[:n] == mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT) & np.isin(d.efc_id[:n], self._joints)
-        if not own.any():
-            return True
-        force = np.where(own, 0.0, d.efc_force[:n])
-        mujoco.mj_mulJacTVec(self._m, d, self._res, force)
-        return bool(np.any(self._res[self._dofs] != 0.0))
-
-    def reset(self):
-        self.contact = False
-
-
-def _shield_of(env):
-    """The ``JointLimitShieldWrapper`` in ``env``'s wrapper stack."""
-    from jaxlimits.envs.gym_shield import JointLimitShieldWrapper
-
-    e = env
-    while not isinstance(e, JointLimitShieldWrapper):
-        e = e.env
-    return e
-
-
 @dataclass(frozen=True)
 class GymTarget:
     """A campaign target of a Gymnasium MuJoCo env: ``make(shield, max_episode_steps=None)`` -> the env
@@ -171,7 +122,6 @@ class GymTarget:
 
         t0 = time.perf_counter()
         env = self.make(shield, max_episode_steps=episode_length)
-        probe = _ContactProbe(_shield_of(env))
         low = np.asarray(env.action_space.low, np.float64)
         high = np.asarray(env.action_space.high, np.float64)
         policy, all_classes = _jitted_policy(low.shape[0], episode_length)
@@ -195,11 +145,10 @@ class GymTarget:
                     disturbed = False
                     for t in range(min(episode_length, steps - done)):
                         a = policy(params, obs, key, np.int32(t))
-                        probe.reset()
                         obs, _, terminated, truncated, info = env.step(to_action_box(a, low, high))
                         done += 1
                         s, v = info["shield"], info["violation"]
-                        disturbed = disturbed or probe.contact
+                        disturbed = disturbed or s["disturbance"]
                         disturbed_steps += disturbed
                         for k in self.measured:
                             if v[k] > 0.0:
