@@ -77,20 +77,30 @@ def count_compilations():
 # The slowest files (compilation-bound, minutes each) go first, so that with `make test`'s two
 # pytest-xdist workers (`--dist loadfile --no-loadscope-reorder`) none of them starts last and
 # leaves one core idle at the end.
-SLOWEST_FILES_FIRST = (
-    "test_contact_task.py",
-    "test_training.py",
+SLOWEST_FILES_FIRST = (  # by measured duration (junit times of a full run), longest first
     "test_brax_shield.py",
-    "test_training_apg.py",
-    "test_limit_contract.py",
     "test_notebooks.py",
-    "test_gym_shield.py",
     "test_third_party_training.py",
     "test_envs_impact.py",
-    "test_multiprocess_eval.py",
-    "test_fuzz_core.py",
+    "test_qp.py",
+    "test_contact_task.py",
+    "test_gym_shield.py",
+    "test_training_apg.py",
+    "test_training.py",
+    "test_limit_contract.py",
     "test_campaign.py",
+    "test_envs_actions.py",
     "test_readme_figures.py",
+    "test_envs_adversarial.py",
+    "test_resume.py",
+    "test_envs_wrapper.py",
+    "test_campaign_gym.py",
+    "test_mutation_net.py",
+    "test_bounds_numerics.py",
+    "test_fuzz_core.py",
+    "test_envs_gym.py",
+    "test_envs_task_space.py",
+    "test_multiprocess_eval.py",
 )
 
 
