@@ -278,6 +278,32 @@ def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
     return target, policy, params, cfg.action_repeat
 
 
+def make_row(target, shield: str, policy: str, s: dict, wall: float, compile_s: float) -> dict:
+    """One campaign row of (``target``, ``shield``, ``policy``) from the counts ``s``, keyed as
+    ``evaluate.summarize``'s row (``env_steps``, ``violations/<k>``, ``max_violation/<k>``,
+    ``undisturbed_violations/<k>``, ``nonviable``, ``conflicts``, ``disturbed_steps``, ``impact_infeasible``,
+    ``nonfinite_actions``, ``strikes``); ``wall`` and ``compile_s`` [s]. Every target's ``rows`` builds its rows
+    here, so ``format_table``, ``by_shield`` and ``claim_violations`` see one layout."""
+    row = {"target": target.name, "shield": shield, "policy": policy, "env_steps": s["env_steps"]}
+    row.update(claimed=list(guaranteed(shield, target)), measured=list(target.measured))
+    for k in VIOLATION_KEYS:
+        row[f"{k}/count"] = s[f"violations/{k}"]
+        row[f"{k}/worst"] = s[f"max_violation/{k}"]
+        row[f"{k}/undisturbed"] = s[f"undisturbed_violations/{k}"]
+    row.update(
+        nonviable=s["nonviable"],
+        conflicts=s["conflicts"],
+        disturbed_steps=s["disturbed_steps"],
+        impact_infeasible=s["impact_infeasible"],
+        nan_substituted=s["nonfinite_actions"],
+        strikes=s["strikes"],
+        wall_s=round(wall, 2),
+        compile_s=round(compile_s, 1),
+        env_steps_per_s=round(s["env_steps"] / wall, 1),
+    )
+    return row
+
+
 def run_row_set(
     target: Target,
     shield: str,
@@ -319,24 +345,7 @@ def run_row_set(
         parts = [ev(params, seed + i) for i in range(n_chunks)]
         wall = time.perf_counter() - t0
         per = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        s = evaluate.summarize(per, episode_length)
-        row = {"target": target.name, "shield": shield, "policy": cls, "env_steps": s["env_steps"]}
-        row.update(claimed=list(guaranteed(shield, target)), measured=list(target.measured))
-        for k in VIOLATION_KEYS:
-            row[f"{k}/count"] = s[f"violations/{k}"]
-            row[f"{k}/worst"] = s[f"max_violation/{k}"]
-            row[f"{k}/undisturbed"] = s[f"undisturbed_violations/{k}"]
-        row.update(
-            nonviable=s["nonviable"],
-            conflicts=s["conflicts"],
-            disturbed_steps=s["disturbed_steps"],
-            impact_infeasible=s["impact_infeasible"],
-            nan_substituted=s["nonfinite_actions"],
-            strikes=s["strikes"],
-            wall_s=round(wall, 2),
-            compile_s=round(compile_s, 1),
-            env_steps_per_s=round(s["env_steps"] / wall, 1),
-        )
+        row = make_row(target, shield, cls, evaluate.summarize(per, episode_length), wall, compile_s)
         rows.append(row)
     return rows
 

@@ -162,23 +162,14 @@ class GymTarget:
                             break
                     episode += 1
                 wall = time.perf_counter() - t0
-                row = {"target": self.name, "shield": shield, "policy": cls, "env_steps": done}
-                row.update(claimed=list(campaign.guaranteed(shield, self)), measured=list(self.measured))
+                counts = {"env_steps": done, "nonviable": nonviable, "conflicts": conflicts}
+                counts.update(disturbed_steps=disturbed_steps, impact_infeasible=0, nonfinite_actions=nonfinite)
+                counts["strikes"] = 0
                 for k in VIOLATION_KEYS:
-                    row[f"{k}/count"] = count[k]
-                    row[f"{k}/worst"] = worst[k]
-                    row[f"{k}/undisturbed"] = undisturbed[k]
-                row.update(
-                    nonviable=nonviable,
-                    conflicts=conflicts,
-                    disturbed_steps=disturbed_steps,
-                    impact_infeasible=0,
-                    nan_substituted=nonfinite,
-                    strikes=0,
-                    wall_s=round(wall, 2),
-                    compile_s=round(compile_s, 1),
-                    env_steps_per_s=round(done / wall, 1),
-                )
+                    counts[f"violations/{k}"] = count[k]
+                    counts[f"max_violation/{k}"] = worst[k]
+                    counts[f"undisturbed_violations/{k}"] = undisturbed[k]
+                row = campaign.make_row(self, shield, cls, counts, wall, compile_s)
                 rows.append(row)
         finally:
             env.close()
