@@ -263,8 +263,17 @@ class ArmReach(Env):
 
     @_mjx_broadcasting
     def ee_jacobian(self, q) -> jax.Array:
-        """Jacobian of the end-effector site position, ``(3, n)`` (forward-mode autodiff of MJX kinematics)."""
-        return jax.jacfwd(self.ee_position)(self._f32(q))
+        """Jacobian of the end-effector site position at joint positions ``q``, ``(3, n)`` [m/rad]: MJX's
+        analytic ``jac`` from one kinematics pass (equal to autodiff of ``ee_position``, tested; a
+        forward-mode ``jacfwd`` of the kinematics traced and compiled n tangent passes per call)."""
+        d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=self._f32(q)))
+        return self.ee_jacobian_at(mjx.com_pos(self.sys, d))
+
+    def ee_jacobian_at(self, d) -> jax.Array:
+        """The end-effector Jacobian ``(3, n)`` at ``d``'s positions, which must have their position stage
+        computed (``mjx.fwd_position``, as every state's ``pipeline_state`` has): no kinematics recomputed."""
+        jacp, _ = mjx.jac(self.sys, d, d.site_xpos[self.ee_site], self._ee_body)
+        return jacp.T
 
     @_mjx_broadcasting
     def reset_to(self, q, v, target) -> State:
@@ -285,10 +294,20 @@ class ArmReach(Env):
         return self.step_acc(state, action * self._f32(self.limits.a_max))
 
     # ---- physics --------------------------------------------------------------------------------
-    def inverse_dynamics(self, d):
-        """``(M, h)`` at the state of ``d`` (positions/velocities), ``h = qfrc_bias - qfrc_passive``."""
-        d = mjx.fwd_velocity(self.sys, mjx.fwd_position(self.sys, d))
-        return mjx.full_m(self.sys, d), d.qfrc_bias - d.qfrc_passive, d
+    def inverse_dynamics(self, d, sys=None):
+        """``(M, h, d)`` at the state of ``d`` (positions/velocities), ``h = qfrc_bias - qfrc_passive``; ``d``
+        with its position and velocity stages computed under ``sys`` (default ``self.sys``)."""
+        sys = self.sys if sys is None else sys
+        d = mjx.fwd_velocity(sys, mjx.fwd_position(sys, d))
+        return mjx.full_m(sys, d), d.qfrc_bias - d.qfrc_passive, d
+
+    @functools.cached_property
+    def _sys_without_contacts(self):
+        """``sys`` with contacts disabled, for ``M`` and ``h`` alone: neither depends on contacts, and their
+        collision detection is most of a position stage's program (an env with a wall traced and compiled it
+        again in every shield's torque and impact model)."""
+        flags = int(self.sys.opt.disableflags) | int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        return self.sys.tree_replace({"opt.disableflags": flags})
 
     def _substep(self, d, a):
         M, h, d = self.inverse_dynamics(d)
@@ -366,16 +385,16 @@ class ArmReach(Env):
         ``d`` must have its position stage computed (``mjx.fwd_position``); ``err`` ``(3,)`` [m].
         ``lam = IK_DAMPING`` keeps it finite and bounded (``<= |err| / (2 lam)``) at singularities.
         """
-        jacp, _ = mjx.jac(self.sys, d, d.site_xpos[self.ee_site], self._ee_body)
-        J = jacp.T  # (3, n)
+        J = self.ee_jacobian_at(d)  # (3, n)
         return J.T @ jnp.linalg.solve(J @ J.T + IK_DAMPING**2 * jnp.eye(3, dtype=J.dtype), err)
 
     # ---- MJX-backed dynamics for jaxlimits.torque ----------------------------------------------
     @_mjx_broadcasting
     def mass_and_bias(self, q, v):
         """``(M(q), h(q, v))`` from MJX for one state, ``h = qfrc_bias - qfrc_passive``; vmappable."""
-        d = mjx.make_data(self.sys).replace(qpos=self._f32(q), qvel=self._f32(v))
-        M, h, _ = self.inverse_dynamics(d)
+        sys = self._sys_without_contacts
+        d = mjx.make_data(sys).replace(qpos=self._f32(q), qvel=self._f32(v))
+        M, h, _ = self.inverse_dynamics(d, sys)
         return M, h
 
 

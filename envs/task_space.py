@@ -5,7 +5,7 @@
 1. ``dr = action * step_size`` [m], ``action in [-1, 1]^k``: the planar arm moves in its x-z plane
    (``k = 2``), the Panda in 3-D (``k = 3``) (``axes``, detected from the joint axes by default).
 2. ``J``: the end-effector site's linear Jacobian rows ``axes`` at the current ``q``
-   (``ArmReach.ee_jacobian``: forward-mode autodiff of the MJX forward kinematics).
+   (``ArmReach.ee_jacobian``: MJX's analytic Jacobian of the end-effector site).
 3. ``jaxlimits.timescale_ik(J, dr, v_max, t_min=dt, dq_min=q_min - q, dq_max=q_max - q,
    r_norm_max=ee_speed_max)``: the joint displacement ``dq`` and the time ``T >= dt`` that the
    joint velocity limits, the position limits and the end-effector speed cap allow for the whole
@@ -86,16 +86,17 @@ class TaskSpaceActions(Wrapper):
     def action_size(self) -> int:
         return len(self.axes)
 
-    def jacobian(self, q):
-        """``(k, n)`` linear Jacobian of the end-effector site's ``axes`` at ``q (n,)``."""
-        return self.base.ee_jacobian(q)[self._idx, :]
+    def jacobian(self, d):
+        """``(k, n)`` linear Jacobian of the end-effector site's ``axes`` at the MJX data ``d`` (a state's
+        ``pipeline_state``: its position stage computed)."""
+        return self.base.ee_jacobian_at(d)[self._idx, :]
 
     def plan(self, state: State, action):
         """``(timescale result, dr, J)`` for one unbatched state and action ``(k,)``; ``J`` the ``(k, n)``
         Jacobian at the state the plan was made with."""
         q = state.pipeline_state.qpos
         dr = jnp.asarray(action, jnp.float32) * jnp.float32(self.step_size)
-        J = self.jacobian(q)
+        J = self.jacobian(state.pipeline_state)
         res = jl.timescale_ik(
             J,
             dr,

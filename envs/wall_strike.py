@@ -414,7 +414,7 @@ class WallStrike(ArmReach):
         )  # measured / bound, once a strike
         # normal impulse delivered this step [N s]: the wall's impulse on the ball from the joint impulse,
         # J^T p = sum(qfrc_constraint) h, solved in the least-squares sense (regularised)
-        Jee = self.ee_jacobian(d0.qpos)
+        Jee = self.ee_jacobian_at(d0)  # d0: a state's pipeline_state, its position stage computed
         p = jnp.linalg.solve(Jee @ Jee.T + 1e-6 * jnp.eye(3, dtype=Jee.dtype), Jee @ step_imp)
         normal_impulse = jnp.maximum(jnp.sum(p * -nrm), 0.0)
         metrics["impulse"] = normal_impulse
@@ -461,7 +461,7 @@ def strike_command(env: WallStrike, state: State, speed, gain: float = 20.0):
     null-space motion is damped). Single state.
     """
     d = state.pipeline_state
-    J = env.ee_jacobian(d.qpos)
+    J = env.ee_jacobian_at(d)
     v = d.qvel
     nrm = jnp.asarray(env.normal, jnp.float32)
     err = speed * nrm - J @ v

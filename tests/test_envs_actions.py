@@ -62,19 +62,15 @@ def test_ik_observation_is_the_damped_least_squares_step(env):
     """The appended entries equal ``J^T (J J^T + lam^2 I)^-1 e`` with ``J`` from finite differences of the FK."""
     from jaxlimits.envs.arm import IK_DAMPING
 
-    s = env.reset(jax.random.PRNGKey(5))
+    s = jax.jit(env.reset)(jax.random.PRNGKey(5))  # jitted: MJX op by op takes longer than its compile
     q = np.asarray(s.pipeline_state.qpos, np.float64)
     obs = np.asarray(s.obs)
     assert obs.shape == (env.observation_size,) == (4 * env.n + 6,)
     err = obs[3 * env.n + 3 : 3 * env.n + 6]
     eps = 1e-3
-    J = np.stack(
-        [
-            (np.asarray(env.ee_position(q + eps * e)) - np.asarray(env.ee_position(q - eps * e))) / (2 * eps)
-            for e in np.eye(env.n)
-        ],
-        axis=1,
-    )
+    steps = eps * np.eye(env.n)
+    fk = np.asarray(jax.jit(jax.vmap(env.ee_position))(np.concatenate([q + steps, q - steps])), np.float64)
+    J = (fk[: env.n] - fk[env.n :]).T / (2 * eps)
     expected = J.T @ np.linalg.solve(J @ J.T + IK_DAMPING**2 * np.eye(3), err)
     np.testing.assert_allclose(obs[4 * env.n + 6 - env.n :], expected, atol=2e-3 * max(1.0, np.abs(expected).max()))
 
@@ -83,7 +79,7 @@ def test_gradient_through_the_shield_is_the_projection_derivative(env):
     """APG differentiates the reward through the shielded step: a joint the bounds clip passes no gradient
     to its action (the clip's derivative), a free joint passes the physics' gradient (finite differences)."""
     w = SafetyWrapper(env, "viability")
-    s = w.reset(jax.random.PRNGKey(7))
+    s = jax.jit(w.reset)(jax.random.PRNGKey(7))  # jitted: MJX op by op takes longer than its compile
     q = 0.5 * (env.limits.q_max + env.limits.q_min)
     q[0] = env.limits.q_max[0] - 0.18  # joint 0 fast toward its limit (stopping distance 0.162 rad): it must brake
     v = np.array([env.limits.v_max[0] * 0.9, 0.0, 0.0])
@@ -103,6 +99,7 @@ def test_gradient_through_the_shield_is_the_projection_derivative(env):
         return w.step(s, a).reward
 
     g = np.asarray(jax.jit(jax.grad(reward))(action))
+    reward = jax.jit(reward)
     assert np.all(np.isfinite(g))
     assert g[0] == 0.0
     eps = 1e-2
@@ -137,3 +134,24 @@ def test_straight_through_shield_gradient_is_opt_in_and_keeps_the_value(env):
     np.testing.assert_array_equal(jac_straight, np.eye(3))
     with pytest.raises(ValueError, match="gradient"):
         SafetyWrapper(env, "viability", gradient="smooth")
+
+
+@pytest.mark.parametrize("make", ["planar", "panda_wall"])
+def test_analytic_ee_jacobian_equals_autodiff_of_the_kinematics(make):
+    """``ee_jacobian(q)`` (MJX's analytic ``jac``) equals forward-mode autodiff of ``ee_position`` at random
+    configurations (the arms compute in float32: to its rounding); ``ee_jacobian_at`` a state's ``pipeline_state`` equals ``ee_jacobian`` of its ``q`` (planar arm; the Panda wall's reset compiles its collisions)."""
+    from jaxlimits.envs.wall_strike import make_wall_strike
+
+    arm = make_planar_reach(torque_samples=0) if make == "planar" else make_wall_strike(torque_samples=0)
+    lim = arm.limits
+    rng = np.random.default_rng(0)
+    qs = rng.uniform(lim.q_min, lim.q_max, (8, arm.n))
+    J = np.asarray(jax.jit(jax.vmap(arm.ee_jacobian))(qs))  # jitted: MJX op by op takes longer than its compile
+    J_ad = np.asarray(jax.jit(jax.vmap(jax.jacfwd(arm.ee_position)))(qs))
+    assert J.shape == (8, 3, arm.n) and np.abs(J).max() > 0.1
+    np.testing.assert_allclose(J, J_ad, atol=1e-6)
+    if make != "planar":
+        return
+    s = jax.jit(arm.reset)(jax.random.PRNGKey(1))
+    J_at, J_q = jax.jit(lambda s: (arm.ee_jacobian_at(s.pipeline_state), arm.ee_jacobian(s.pipeline_state.qpos)))(s)
+    np.testing.assert_allclose(np.asarray(J_at), np.asarray(J_q), atol=1e-6)

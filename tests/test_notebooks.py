@@ -3,9 +3,10 @@
 The notebooks are stored without outputs; this runs them top to bottom in a fresh ``python3``
 kernel (this interpreter's ipykernel) with the notebooks folder as working directory and the
 environment inherited from the test process plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` (notebooks that
-train use tiny budgets then).
+train use tiny budgets then). ``06_training`` runs in the main job's test, on that job's results.
 """
 
+import os
 from pathlib import Path
 
 import nbformat
@@ -13,17 +14,37 @@ import pytest
 from nbclient import NotebookClient
 
 NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
-NOTEBOOKS = sorted(NOTEBOOK_DIR.glob("*.ipynb"))
+# run by another test, on that test's results (instead of training the same tiny run again here)
+EXECUTED_ELSEWHERE = {
+    "06_training.ipynb": "tests/test_training.py::test_main_job_train_evaluate_reload_on_a_tiny_budget"
+}
+NOTEBOOKS = [p for p in sorted(NOTEBOOK_DIR.glob("*.ipynb")) if p.name not in EXECUTED_ELSEWHERE]
+
+
+def run_notebook(path: Path, **env: str) -> None:
+    """Execute ``path`` top to bottom in a fresh ``python3`` kernel (the notebooks folder as working directory,
+    this environment plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` and ``env``); raises ``CellExecutionError`` (with the
+    traceback) on the first failing cell."""
+    nb = nbformat.read(path, as_version=4)
+    client = NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}})
+    old = {k: os.environ.get(k) for k in ("JAXLIMITS_NOTEBOOK_QUICK", *env)}
+    os.environ.update({"JAXLIMITS_NOTEBOOK_QUICK": "1", **env})  # inherited by the kernel
+    try:
+        client.execute()
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def test_every_notebook_is_executed():
+    assert {p.name for p in NOTEBOOKS} | set(EXECUTED_ELSEWHERE) == {p.name for p in NOTEBOOK_DIR.glob("*.ipynb")}
+    root = NOTEBOOK_DIR.parent
+    assert all(name in (root / test.split("::")[0]).read_text() for name, test in EXECUTED_ELSEWHERE.items())
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
-def test_notebook_executes(path, monkeypatch):
-    monkeypatch.setenv("JAXLIMITS_NOTEBOOK_QUICK", "1")  # inherited by the kernel
-    nb = nbformat.read(path, as_version=4)
-    client = NotebookClient(
-        nb,
-        timeout=300,
-        kernel_name="python3",
-        resources={"metadata": {"path": str(path.parent)}},
-    )
-    client.execute()  # raises CellExecutionError (with the traceback) on the first failing cell
+def test_notebook_executes(path):
+    run_notebook(path)

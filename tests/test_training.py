@@ -226,6 +226,10 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     rows = [json.loads(x) for x in (out / "runs" / "viability" / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) >= 2 and rows[-1]["step"] >= 4000
+    # notebook 06 shows this run (and checks its guarantees) as it shows `make demo`'s
+    from test_notebooks import NOTEBOOK_DIR, run_notebook
+
+    run_notebook(NOTEBOOK_DIR / "06_training.ipynb", JAXLIMITS_RESULTS=str(out))
 
     # reload the checkpoint: same parameters, and the evaluation from the CLI reproduces the main job's
     from jaxlimits.training import brax_ppo
