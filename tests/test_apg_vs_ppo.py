@@ -10,6 +10,9 @@ import pytest
 
 from jaxlimits.training import config, plots
 
+# the script sets the XLA flags when imported; in a worker whose JAX backend already runs that only warns
+pytestmark = pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "apg_vs_ppo.py"
 
 

@@ -8,6 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# the script sets the XLA flags when imported; in a worker whose JAX backend already runs that only warns
+pytestmark = pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "jerk_training.py"
 
 
