@@ -47,6 +47,11 @@ import jaxlimits.torque as _torque
 from jaxlimits.envs.arm import ArmReach, State, Wrapper
 
 METHODS = ("none", "clip", "naive", "viability", "jerk")
+# the derivative a differentiating learner (Brax APG) sees through the shield: the projection's own two
+# (``jl.PROJECTION_GRADIENTS``) and "exact_fixed_bounds", the exact projection derivative with the bounds held
+# constant (no derivative of the viability bounds with respect to the state): it separates the two paths of
+# the exact derivative (docs/training.md, APG against PPO)
+SHIELD_GRADIENTS = (*jl.PROJECTION_GRADIENTS, "exact_fixed_bounds")
 BOUND_METHODS = ("naive", "viability", "jerk")  # the methods whose bounds a contact must not push the joints out of
 
 
@@ -85,8 +90,10 @@ class SafetyWrapper(Wrapper):
       gradient: the derivative of the projection seen by anything that differentiates through the
         step (Brax APG): ``"exact"`` (default; the clip's true derivative, so a clipped joint passes
         no gradient to its command) or ``"straight_through"`` (the identity w.r.t. the command, a
-        learning heuristic, not the projection's derivative; see ``jl.solve_box_qp``). The value of
-        the safe command is the same, bit for bit, so the guarantee does not depend on it.
+        learning heuristic, not the projection's derivative; see ``jl.solve_box_qp``) or
+        ``"exact_fixed_bounds"`` (the exact derivative with the bounds held constant: no derivative of the
+        bounds w.r.t. the state). The value of the safe command is the same, bit for bit, so the guarantee
+        does not depend on it.
       impact: ``None`` (off: behaviour unchanged), ``True`` (the env's ``impact`` spec) or a dict
         overriding any of ``c_range``, ``dt_impact``, ``tau_imp_max`` (n,) [N m], ``margin`` (the
         cap is scaled by it, default 1.0), ``reg`` (see ``jaxlimits.impact``). Needs an env with
@@ -109,8 +116,8 @@ class SafetyWrapper(Wrapper):
         super().__init__(env)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        if gradient not in jl.PROJECTION_GRADIENTS:
-            raise ValueError(f"gradient must be one of {jl.PROJECTION_GRADIENTS}, got {gradient!r}")
+        if gradient not in SHIELD_GRADIENTS:
+            raise ValueError(f"gradient must be one of {SHIELD_GRADIENTS}, got {gradient!r}")
         self.gradient = gradient
         if not isinstance(env, ArmReach):
             raise TypeError(f"SafetyWrapper wraps an ArmReach directly, got {type(env).__name__}")
@@ -269,13 +276,16 @@ class SafetyWrapper(Wrapper):
         the simulator, whatever the method (``"none"`` included).
         """
         b, extra = self._bounds(state)
+        gradient = self.gradient
+        if gradient == "exact_fixed_bounds":
+            b, gradient = jax.tree.map(jax.lax.stop_gradient, b), "exact"
         v = state.pipeline_state.qvel
         bad = ~jnp.all(jnp.isfinite(a_des), axis=-1, keepdims=True)
         brake = -jnp.sign(v) * jnp.asarray(self.limits.a_max, jnp.float32)
         a_in = jnp.where(bad, brake, a_des)
         extra = dict(extra, nonfinite_action=bad[..., 0].astype(jnp.float32))
         if not self.impact:
-            return project(a_in, b.lower, b.upper, self.gradient), b, extra
+            return project(a_in, b.lower, b.upper, gradient), b, extra
         G, h, cap, u = self.impact_cap(state, b.lower, b.upper)
         # task-consistent correction first: remove the excess approach speed along u = M^-1 J^T M_eq n̂
         # (J u = n̂: only the normal end-effector acceleration changes, not the tangential one), then
@@ -285,7 +295,7 @@ class SafetyWrapper(Wrapper):
         excess = jnp.maximum(jnp.sum(g * a_in, axis=-1, keepdims=True) - h, 0.0)
         ok = gu > 1e-6
         a_task = a_in - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
-        res = jl.solve_box_qp(a_task, b.lower, b.upper, G=G, h=h, gradient=self.gradient)
+        res = jl.solve_box_qp(a_task, b.lower, b.upper, G=G, h=h, gradient=gradient)
         extra = dict(extra, impact_cap=cap, impact_infeasible=res.infeasible.astype(jnp.float32))
         return res.x, b, extra
 

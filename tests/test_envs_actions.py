@@ -132,6 +132,19 @@ def test_straight_through_shield_gradient_is_opt_in_and_keeps_the_value(env):
     jac_straight = np.asarray(jax.jacobian(lambda a: straight.shield(s, a)[0])(a_des))
     np.testing.assert_array_equal(jac_exact, np.diag([0.0, 1.0, 1.0]))
     np.testing.assert_array_equal(jac_straight, np.eye(3))
+    # "exact_fixed_bounds": the same value and command derivative as "exact", but the clipped joint's safe
+    # command no longer moves with the state through its bound (the exact one does: the braking bound)
+    fixed = SafetyWrapper(env, "viability", gradient="exact_fixed_bounds")
+    np.testing.assert_array_equal(np.asarray(fixed.shield(s, a_des)[0]), np.asarray(a_exact))
+    np.testing.assert_array_equal(np.asarray(jax.jacobian(lambda a: fixed.shield(s, a)[0])(a_des)), jac_exact)
+
+    def d_state(w):
+        def out(v):
+            return w.shield(s.replace(pipeline_state=s.pipeline_state.replace(qvel=v)), a_des)[0]
+
+        return np.asarray(jax.jacobian(out)(s.pipeline_state.qvel))
+
+    assert np.abs(d_state(exact)[0]).max() > 0.0 and np.all(d_state(fixed) == 0.0)
     with pytest.raises(ValueError, match="gradient"):
         SafetyWrapper(env, "viability", gradient="smooth")
 

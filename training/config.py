@@ -20,7 +20,7 @@ ACTION_MODES = (
     "velocity",
     "task_space",
 )  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
-SHIELD_GRADIENTS = ("exact", "straight_through")  # jaxlimits' project_box gradients
+SHIELD_GRADIENTS = ("exact", "straight_through", "exact_fixed_bounds")  # envs.safety.SHIELD_GRADIENTS
 
 
 @dataclass(frozen=True)
@@ -52,7 +52,8 @@ class APGConfig:
     ``num_envs`` envs through the simulator *and the shield* (the projection's derivative);
     ``num_timesteps / (num_envs * horizon_length)`` updates are made. ``shield_gradient``: the
     derivative of the shield's projection the gradient goes through, ``"exact"`` (a clipped joint
-    passes none) or ``"straight_through"`` (identity; a heuristic, see ``SafetyWrapper``).
+    passes none), ``"straight_through"`` (identity; a heuristic) or ``"exact_fixed_bounds"`` (exact, the
+    bounds held constant); see ``SafetyWrapper``.
     """
 
     num_envs: int = 64
