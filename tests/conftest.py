@@ -52,6 +52,21 @@ def x64():
         yield
 
 
+def load_benchmark(name: str):
+    """Import ``benchmarks/<name>.py`` as a module (its functions, not its ``main``). The scripts set the XLA
+    flags on import and warn when JAX already runs in this process (conftest set the flags first)."""
+    import importlib.util
+    import warnings
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"_benchmark_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="jax was imported before jaxlimits", category=RuntimeWarning)
+        spec.loader.exec_module(module)
+    return module
+
+
 @contextlib.contextmanager
 def count_compilations():
     """Counts XLA compilations inside the block (JAX logs one line per compile when asked)."""

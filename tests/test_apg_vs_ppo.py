@@ -2,26 +2,17 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from conftest import load_benchmark
 
 from jaxlimits.training import config, plots
-
-# the script sets the XLA flags when imported; in a worker whose JAX backend already runs that only warns
-pytestmark = pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "apg_vs_ppo.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("_apg_vs_ppo", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("apg_vs_ppo")
 
 
 def _apg_rows():

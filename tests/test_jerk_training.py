@@ -2,24 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-# the script sets the XLA flags when imported; in a worker whose JAX backend already runs that only warns
-pytestmark = pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "jerk_training.py"
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("_jerk_training", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("jerk_training")
 
 
 def test_known_jerk(bench):

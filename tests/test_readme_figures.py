@@ -29,18 +29,17 @@ the persistent compilation cache from this process's environment, as in ``tests/
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
 import subprocess
 import sys
-import warnings
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from conftest import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "benchmarks"
@@ -61,17 +60,6 @@ def _run_script(*args: str, timeout: int, json_prefix: str = "JSON ") -> dict:
     assert len(json_lines) == 1, proc.stdout[-3000:]
     assert lines[-1] == json_lines[0], proc.stdout[-3000:]
     return json.loads(json_lines[0][len(json_prefix) :])
-
-
-def _load_script(name: str):
-    """Import ``benchmarks/<name>.py`` as a module (its functions, not its ``main``)."""
-    spec = importlib.util.spec_from_file_location(f"_readme_{name}", BENCH / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    with warnings.catch_warnings():
-        # the script sets the XLA flags on import and warns if JAX already runs; conftest set them first
-        warnings.filterwarnings("ignore", message="jax was imported before jaxlimits", category=RuntimeWarning)
-        spec.loader.exec_module(module)
-    return module
 
 
 # ---- Sec. V-B on the Panda ---------------------------------------------------------------------------------
@@ -99,7 +87,7 @@ def test_paper_vb_naive_overshoots_viability_stops_short():
 def test_impact_home_cap():
     from jaxlimits.envs.wall_strike import make_wall_strike
 
-    strikes = _load_script("impact_strikes")
+    strikes = load_benchmark("impact_strikes")
     with jax.numpy_rank_promotion("allow"):  # the script adds HOME (n,) to the (512, n) offsets
         c_home, caps = strikes.home_caps(make_wall_strike())
     cap, pos, vel, tor = (float(x) for x in (c_home.cap, c_home.position, c_home.velocity, c_home.torque))
