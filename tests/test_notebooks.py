@@ -6,7 +6,6 @@ environment inherited from the test process plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` 
 train use tiny budgets then). ``06_training`` runs in the main job's test, on that job's results.
 """
 
-import os
 from pathlib import Path
 
 import nbformat
@@ -21,22 +20,15 @@ EXECUTED_ELSEWHERE = {
 NOTEBOOKS = [p for p in sorted(NOTEBOOK_DIR.glob("*.ipynb")) if p.name not in EXECUTED_ELSEWHERE]
 
 
-def run_notebook(path: Path, **env: str) -> None:
+def run_notebook(path: Path, monkeypatch, **env: str) -> None:
     """Execute ``path`` top to bottom in a fresh ``python3`` kernel (the notebooks folder as working directory,
-    this environment plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` and ``env``); raises ``CellExecutionError`` (with the
-    traceback) on the first failing cell."""
+    this environment plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` and ``env``, set through pytest's ``monkeypatch``);
+    raises ``CellExecutionError`` (with the traceback) on the first failing cell."""
+    for k, v in {"JAXLIMITS_NOTEBOOK_QUICK": "1", **env}.items():
+        monkeypatch.setenv(k, v)  # inherited by the kernel
     nb = nbformat.read(path, as_version=4)
     client = NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}})
-    old = {k: os.environ.get(k) for k in ("JAXLIMITS_NOTEBOOK_QUICK", *env)}
-    os.environ.update({"JAXLIMITS_NOTEBOOK_QUICK": "1", **env})  # inherited by the kernel
-    try:
-        client.execute()
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    client.execute()
 
 
 def test_every_notebook_is_executed():
@@ -46,5 +38,5 @@ def test_every_notebook_is_executed():
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
-def test_notebook_executes(path):
-    run_notebook(path)
+def test_notebook_executes(path, monkeypatch):
+    run_notebook(path, monkeypatch)

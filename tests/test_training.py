@@ -204,7 +204,7 @@ def _cli(*args, timeout=900):
     return proc
 
 
-def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
+def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path, monkeypatch):
     """``jaxlimits main --task reach`` (tiny config) trains both shields, evaluates, plots; ``evaluate --run``
     reloads. (The contact task's half of the main job: tests/test_contact_task.py.)"""
     out = tmp_path / "main"
@@ -229,7 +229,7 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path):
     # notebook 06 shows this run (and checks its guarantees) as it shows `make demo`'s
     from test_notebooks import NOTEBOOK_DIR, run_notebook
 
-    run_notebook(NOTEBOOK_DIR / "06_training.ipynb", JAXLIMITS_RESULTS=str(out))
+    run_notebook(NOTEBOOK_DIR / "06_training.ipynb", monkeypatch, JAXLIMITS_RESULTS=str(out))
 
     # reload the checkpoint: same parameters, and the evaluation from the CLI reproduces the main job's
     from jaxlimits.training import brax_ppo
