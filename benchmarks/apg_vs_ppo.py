@@ -46,13 +46,6 @@ from jaxlimits.training import config, plots  # noqa: E402  (pure Python; the JA
 RUNS = (("ppo", "ppo", None), ("apg_exact", "apg", "exact"), ("apg_straight_through", "apg", "straight_through"))
 
 
-def with_section(cfg, section: str, **fields):
-    """``cfg`` with fields of its ``ppo`` / ``apg`` section replaced (validated again)."""
-    d = cfg.to_dict()
-    d[section] = {**d[section], **fields}
-    return config.from_dict(d)
-
-
 def apg_learning_steps(cfg) -> int:
     """Env steps APG learns from: Brax runs ``round(updates / epochs)`` updates per epoch of ``num_envs x horizon``."""
     from jaxlimits.training import brax_apg
@@ -168,8 +161,8 @@ def run_configs(args) -> dict:
     ppo = config.load("planar_reach_ppo")
     apg = config.load("planar_reach_apg")
     if args.quick:
-        ppo = with_section(ppo.override(num_timesteps=1, eval_episodes=256), "ppo", num_evals=2)
-        apg = with_section(apg.override(eval_episodes=256), "apg", num_evals=4)
+        ppo = ppo.override(num_timesteps=1, eval_episodes=256, ppo={"num_evals": 2})
+        apg = apg.override(eval_episodes=256, apg={"num_evals": 4})
     if args.ppo_steps:
         ppo = ppo.override(num_timesteps=args.ppo_steps)
     return {"ppo": ppo, "apg": apg}
@@ -180,7 +173,7 @@ def calibrate(apg_cfg, out: Path, show: bool) -> dict:
     from jaxlimits.training import algos
 
     a = apg_cfg.apg
-    cfg = with_section(apg_cfg.override(num_timesteps=6 * a.num_envs * a.horizon_length), "apg", num_evals=4)
+    cfg = apg_cfg.override(num_timesteps=6 * a.num_envs * a.horizon_length, apg={"num_evals": 4})
     algos.train(cfg, out, show_progress=show)
     return calibration_from_rows(plots.read_rows(out))
 
@@ -223,7 +216,7 @@ def main(argv=None) -> int:
         if algo == "ppo":
             cfg = cfgs["ppo"]
         else:
-            cfg = with_section(cfgs["apg"].override(num_timesteps=apg_steps), "apg", shield_gradient=gradient)
+            cfg = cfgs["apg"].override(num_timesteps=apg_steps, apg={"shield_gradient": gradient})
         print(f"== {name}: {cfg.num_timesteps:,} num_timesteps", file=sys.stderr, flush=True)
         r = experiment.train_and_evaluate(cfg, out / "runs" / name, show_progress=show)
         rows = plots.read_rows(out / "runs" / name)

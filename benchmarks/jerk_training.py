@@ -138,7 +138,7 @@ def motion_rollout(
 
 def run_shield(cfg, run_dir, *, reuse: bool, episodes: int, motion_episodes: int, show_progress: bool) -> dict:
     """Train (unless ``reuse``), evaluate over ``episodes`` and measure the motion of one run."""
-    from jaxlimits.training import algos, brax_ppo, evaluate
+    from jaxlimits.training import algos, experiment
 
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
@@ -147,18 +147,8 @@ def run_shield(cfg, run_dir, *, reuse: bool, episodes: int, motion_episodes: int
     else:
         summary = algos.train(cfg, run_dir, show_progress=show_progress)
     t_train = time.perf_counter() - t0
-    run_cfg, policy, params = algos.load_policy(run_dir)
-    env = brax_ppo.env_from_config(run_cfg)
+    run_cfg, env, policy, params, row = experiment.evaluate_run(run_dir, episodes)
     seed = run_cfg.seed + 1
-    row = evaluate.evaluate(
-        env,
-        policy,
-        params,
-        episodes=episodes,
-        episode_length=run_cfg.episode_length,
-        action_repeat=run_cfg.action_repeat,
-        seed=seed,
-    )
     t0 = time.perf_counter()
     m = min(motion_episodes, episodes)
     roll = motion_rollout(

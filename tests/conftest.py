@@ -52,6 +52,23 @@ def x64():
         yield
 
 
+NOTEBOOK_DIR = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
+
+
+def run_notebook(path: pathlib.Path, monkeypatch, **env: str) -> None:
+    """Execute ``path`` top to bottom in a fresh ``python3`` kernel (the notebooks folder as working directory,
+    this environment plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` and ``env``, set through pytest's ``monkeypatch``);
+    raises ``CellExecutionError`` (with the traceback) on the first failing cell."""
+    for k, v in {"JAXLIMITS_NOTEBOOK_QUICK": "1", **env}.items():
+        monkeypatch.setenv(k, v)  # inherited by the kernel
+    import nbformat
+    from nbclient import NotebookClient
+
+    nb = nbformat.read(path, as_version=4)
+    client = NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}})
+    client.execute()
+
+
 def load_benchmark(name: str):
     """Import ``benchmarks/<name>.py`` as a module (its functions, not its ``main``). The scripts set the XLA
     flags on import and warn when JAX already runs in this process (conftest set the flags first)."""

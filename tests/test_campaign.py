@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxlimits.training import campaign
+from jaxlimits.training import campaign, campaign_policies, campaign_rows
 
 STEPS = 100_000
 EPISODE = 200
@@ -62,7 +62,7 @@ def test_unshielded_rows_violate(planar_rows, policy):
     r = _row(planar_rows, "none", policy)
     assert r["position/count"] > 0 and r["velocity/count"] > 0, r
     assert campaign.shielded_violations([r]) == 0  # nothing is claimed for "none"
-    claims = campaign.guaranteed("viability", campaign.TARGETS["planar arm"])
+    claims = campaign_rows.guaranteed("viability", campaign.TARGETS["planar arm"])
     assert claims == ("position", "velocity", "acceleration", "torque")
     assert campaign.shielded_violations([dict(r, claimed=list(claims))]) > 0  # the count can fail
 
@@ -70,7 +70,7 @@ def test_unshielded_rows_violate(planar_rows, policy):
 def _direct_nonfinite_count(n: int, episodes: int, seed: int) -> int:
     """Steps whose ``nan_burst`` action has a non-finite entry, from the evaluator's key layout (episode keys
     ``split(PRNGKey(seed), episodes)``; each splits into reset, episode and action keys)."""
-    policy = campaign.nan_burst_policy(n)
+    policy = campaign_policies.nan_burst_policy(n)
 
     def episode(key):
         _, k_episode, k_act = jax.random.split(key, 3)
@@ -90,7 +90,7 @@ def test_nan_substitutions_equal_a_direct_count(planar_rows):
 
 
 def test_random_walk_stays_in_the_box_with_small_steps():
-    policy = campaign.random_walk_policy(4, horizon=EPISODE)
+    policy = campaign_policies.random_walk_policy(4, horizon=EPISODE)
     keys = jnp.stack(jax.random.split(jax.random.PRNGKey(3)))
     a = np.asarray(jax.vmap(lambda t: policy(None, None, keys, t))(jnp.arange(EPISODE)))
     assert np.all(np.abs(a) <= 1.0)

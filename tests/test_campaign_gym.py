@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
-from jaxlimits.training import campaign, campaign_gym
+from jaxlimits.training import campaign, campaign_gym, campaign_policies, campaign_rows
 
 TARGET = "gym Reacher-v5"
 STEPS = 2000
@@ -64,14 +64,14 @@ def test_unshielded_rows_violate(reacher_rows, policy):
     r = _row(reacher_rows, "none", policy)
     assert r["position/count"] > 0 and r["velocity/count"] > 0, r
     assert r["claimed"] == [] and campaign.claim_violations(r) == 0
-    claims = list(campaign.guaranteed("viability", campaign.TARGETS[TARGET]))
+    claims = list(campaign_rows.guaranteed("viability", campaign.TARGETS[TARGET]))
     assert campaign.claim_violations(dict(r, claimed=claims)) > 0  # the count can fail
 
 
 def test_nan_substitutions_equal_a_direct_count(reacher_rows):
     """The ``nan_burst`` actions re-generated from the evaluator's key layout (episode ``e``: the ``e``-th key of
     ``split(PRNGKey(seed), chunk)``, split into reset, episode and action keys), mapped onto the action box."""
-    policy = campaign.nan_burst_policy(2)
+    policy = campaign_policies.nan_burst_policy(2)
     keys = jax.random.split(jax.random.PRNGKey(0), 1024)[: STEPS // EPISODE]
 
     def episode(key):

@@ -6,29 +6,14 @@ environment inherited from the test process plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` 
 train use tiny budgets then). ``06_training`` runs in the main job's test, on that job's results.
 """
 
-from pathlib import Path
-
-import nbformat
 import pytest
-from nbclient import NotebookClient
+from conftest import NOTEBOOK_DIR, run_notebook
 
-NOTEBOOK_DIR = Path(__file__).resolve().parents[1] / "notebooks"
 # run by another test, on that test's results (instead of training the same tiny run again here)
 EXECUTED_ELSEWHERE = {
     "06_training.ipynb": "tests/test_training.py::test_main_job_train_evaluate_reload_on_a_tiny_budget"
 }
 NOTEBOOKS = [p for p in sorted(NOTEBOOK_DIR.glob("*.ipynb")) if p.name not in EXECUTED_ELSEWHERE]
-
-
-def run_notebook(path: Path, monkeypatch, **env: str) -> None:
-    """Execute ``path`` top to bottom in a fresh ``python3`` kernel (the notebooks folder as working directory,
-    this environment plus ``JAXLIMITS_NOTEBOOK_QUICK=1`` and ``env``, set through pytest's ``monkeypatch``);
-    raises ``CellExecutionError`` (with the traceback) on the first failing cell."""
-    for k, v in {"JAXLIMITS_NOTEBOOK_QUICK": "1", **env}.items():
-        monkeypatch.setenv(k, v)  # inherited by the kernel
-    nb = nbformat.read(path, as_version=4)
-    client = NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}})
-    client.execute()
 
 
 def test_every_notebook_is_executed():

@@ -57,6 +57,19 @@ def test_bad_config_raises_with_the_field(bad, field):
         config.from_dict(d)
 
 
+def test_override_replaces_fields_and_section_fields_and_validates():
+    cfg = config.load("tiny")
+    new = cfg.override(num_timesteps=1234, shield=None, ppo={"num_evals": 3})
+    assert (new.num_timesteps, new.shield, new.ppo.num_evals) == (1234, cfg.shield, 3)
+    assert new.ppo.num_envs == cfg.ppo.num_envs and new.apg == cfg.apg
+    with pytest.raises(ValueError, match="ppo.num_envs"):
+        cfg.override(ppo={"num_envs": -4})
+    with pytest.raises(ValueError, match="shield"):
+        cfg.override(shield="nope")
+    with pytest.raises(ValueError, match="colour"):
+        cfg.override(colour="red")
+
+
 def test_config_choices_match_the_library():
     """The config module lists the choices without importing MuJoCo; they must stay the library's."""
     from jaxlimits.envs.actions import ACTION_MODES
@@ -76,9 +89,7 @@ def test_apg_config_selects_the_shield_gradient():
         return env.gradient
 
     cfg = config.load("planar_reach_apg")
-    straight = config.from_dict(
-        {**cfg.to_dict(), "apg": {**cfg.to_dict()["apg"], "shield_gradient": "straight_through"}}
-    )
+    straight = cfg.override(apg={"shield_gradient": "straight_through"})
     assert shield_gradient(cfg) == "exact"
     assert shield_gradient(straight) == "straight_through"
     assert shield_gradient(straight.override(algo="ppo")) == "exact"  # PPO does not differentiate the env
@@ -227,7 +238,7 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path, monkeypatch):
     rows = [json.loads(x) for x in (out / "runs" / "viability" / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) >= 2 and rows[-1]["step"] >= 4000
     # notebook 06 shows this run (and checks its guarantees) as it shows `make demo`'s
-    from test_notebooks import NOTEBOOK_DIR, run_notebook
+    from conftest import NOTEBOOK_DIR, run_notebook
 
     run_notebook(NOTEBOOK_DIR / "06_training.ipynb", monkeypatch, JAXLIMITS_RESULTS=str(out))
 

@@ -19,19 +19,11 @@ def test_apg_trains_through_the_shield_and_reloads(tmp_path):
     """Brax APG (gradients through MJX and the shield) on a tiny budget: counted, zero violations, reloadable."""
     from jaxlimits.training import algos, brax_apg
 
-    cfg = config.load("planar_reach_apg").override(num_timesteps=640, episode_length=20, eval_episodes=8)
-    cfg = config.from_dict(
-        {
-            **cfg.to_dict(),
-            "apg": {
-                **cfg.to_dict()["apg"],
-                "num_envs": 8,
-                "horizon_length": 8,
-                "num_evals": 3,
-                "num_eval_envs": 8,
-                "policy_hidden": [16],
-            },
-        }
+    cfg = config.load("planar_reach_apg").override(
+        num_timesteps=640,
+        episode_length=20,
+        eval_episodes=8,
+        apg={"num_envs": 8, "horizon_length": 8, "num_evals": 3, "num_eval_envs": 8, "policy_hidden": [16]},
     )
     summary = algos.train(cfg, tmp_path / "apg", show_progress=False)
     t = summary["training"]

@@ -64,77 +64,8 @@ with warnings.catch_warnings():
 from jaxlimits.envs.arm import VIOLATION_KEYS
 from jaxlimits.training import checkpoint, evaluate
 from jaxlimits.training.campaign_gym import GYM_TARGETS
-
-POLICY_CLASSES = ("toward_limit", "bang_bang", "random", "random_walk", "nan_burst")
-TRAINED = "trained_noisy"
-WALK_STEP = 0.1  # random_walk: standard deviation of one step's increment [normalised action units]
-BAD_VALUES = (jnp.nan, jnp.inf, -jnp.inf, 1e30)  # what nan_burst puts into an action
-
-
-def _reflect(x):
-    """``x`` folded into ``[-1, 1]`` by reflection at the bounds (a triangle wave of period 4)."""
-    y = jnp.mod(x + 1.0, 4.0)
-    return jnp.where(y <= 2.0, y - 1.0, 3.0 - y)
-
-
-def random_walk_policy(n: int, horizon: int, step: float = WALK_STEP):
-    """A random walk in command space ``(params, obs, key, t) -> action (n,)``: start uniform in ``[-1, 1]``,
-    Gaussian increments of standard deviation ``step``, reflected at ``±1``. Stateless (the evaluator's
-    policies are): the walk's ``horizon`` increments are drawn from the episode key and summed up to ``t``."""
-
-    def policy(params, obs, key, t):
-        del params, obs
-        k_start, k_inc = jax.random.split(jax.random.fold_in(key[0], 1))
-        start = jax.random.uniform(k_start, (n,), jnp.float32, -1.0, 1.0)
-        inc = step * jax.random.normal(k_inc, (horizon, n), jnp.float32)
-        taken = (jnp.arange(horizon) < t)[:, None]
-        return _reflect(start + jnp.sum(jnp.where(taken, inc, 0.0), axis=0))
-
-    return policy
-
-
-def nan_burst_policy(n: int):
-    """Uniform actions in ``[-1, 1]`` with bursts of non-finite or absurd entries: in every period of 10-40 steps
-    (drawn per episode) the first 1-5 steps carry, in each joint with probability 1/2, one of NaN, +inf, -inf,
-    1e30 (``BAD_VALUES``; at least one joint per burst step)."""
-    bad_values = jnp.asarray(BAD_VALUES, jnp.float32)
-
-    def policy(params, obs, key, t):
-        del params, obs
-        k_per, k_len = jax.random.split(jax.random.fold_in(key[0], 2))
-        period = jax.random.randint(k_per, (), 10, 41)
-        length = jax.random.randint(k_len, (), 1, 6)
-        k_act, k_mask, k_val = jax.random.split(jax.random.fold_in(key[1], t), 3)
-        action = jax.random.uniform(k_act, (n,), jnp.float32, -1.0, 1.0)
-        mask = jax.random.bernoulli(k_mask, 0.5, (n,)).at[0].set(True)
-        mask = jax.random.permutation(jax.random.fold_in(k_mask, 1), mask)
-        bad = bad_values[jax.random.randint(k_val, (n,), 0, len(BAD_VALUES))]
-        return jnp.where(mask & (t % period < length), bad, action)
-
-    return policy
-
-
-def campaign_policy(n: int, horizon: int, trained: Callable | None = None, noise: float = 0.3):
-    """One policy ``(params, obs, key, t)`` for every class: ``params["kind"]`` (int32 scalar) indexes
-    ``classes``; ``params["net"]`` are ``trained``'s parameters when it is given. Returns
-    ``(policy, classes)``."""
-    scripted = [evaluate.scripted_policy(k, n) for k in evaluate.SCRIPTED]
-    branches = scripted + [random_walk_policy(n, horizon), nan_burst_policy(n)]
-    classes = POLICY_CLASSES
-    if trained is not None:
-
-        def noisy(params, obs, key, t):
-            a = trained(params["net"], obs, key, t)
-            return a + noise * jax.random.normal(jax.random.fold_in(key[1], t), a.shape, a.dtype)
-
-        branches.append(noisy)
-        classes = classes + (TRAINED,)
-
-    def policy(params, obs, key, t):
-        fns = [lambda p, o, k, s, f=f: jnp.asarray(f(p, o, k, s), jnp.float32) for f in branches]
-        return jax.lax.switch(params["kind"], fns, params, obs, key, t)
-
-    return policy, classes
+from jaxlimits.training.campaign_policies import POLICY_CLASSES, TRAINED, campaign_policy
+from jaxlimits.training.campaign_rows import make_row
 
 
 class EvaluatorMetrics(Wrapper):
@@ -185,7 +116,7 @@ class Target:
     make: Callable
     shields: tuple
     measured: tuple = VIOLATION_KEYS  # the limits its env measures (the others show as "n/m")
-    torque_claimed: bool = True  # the shields guarantee the torque limit (see ``guaranteed``)
+    torque_claimed: bool = True  # the shields guarantee the torque limit (see ``campaign_rows.guaranteed``)
 
     def rows(self, shield: str, classes, steps: int, **kwargs) -> list[dict]:
         """The rows of (this target, ``shield``): ``run_row_set``."""
@@ -276,32 +207,6 @@ def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
 
     target = Target(f"{cfg.env} (trained: {Path(run_dir).name})", make, shields)
     return target, policy, params, cfg.action_repeat
-
-
-def make_row(target, shield: str, policy: str, s: dict, wall: float, compile_s: float) -> dict:
-    """One campaign row of (``target``, ``shield``, ``policy``) from the counts ``s``, keyed as
-    ``evaluate.summarize``'s row (``env_steps``, ``violations/<k>``, ``max_violation/<k>``,
-    ``undisturbed_violations/<k>``, ``nonviable``, ``conflicts``, ``disturbed_steps``, ``impact_infeasible``,
-    ``nonfinite_actions``, ``strikes``); ``wall`` and ``compile_s`` [s]. Every target's ``rows`` builds its rows
-    here, so ``format_table``, ``by_shield`` and ``claim_violations`` see one layout."""
-    row = {"target": target.name, "shield": shield, "policy": policy, "env_steps": s["env_steps"]}
-    row.update(claimed=list(guaranteed(shield, target)), measured=list(target.measured))
-    for k in VIOLATION_KEYS:
-        row[f"{k}/count"] = s[f"violations/{k}"]
-        row[f"{k}/worst"] = s[f"max_violation/{k}"]
-        row[f"{k}/undisturbed"] = s[f"undisturbed_violations/{k}"]
-    row.update(
-        nonviable=s["nonviable"],
-        conflicts=s["conflicts"],
-        disturbed_steps=s["disturbed_steps"],
-        impact_infeasible=s["impact_infeasible"],
-        nan_substituted=s["nonfinite_actions"],
-        strikes=s["strikes"],
-        wall_s=round(wall, 2),
-        compile_s=round(compile_s, 1),
-        env_steps_per_s=round(s["env_steps"] / wall, 1),
-    )
-    return row
 
 
 def run_row_set(
@@ -395,21 +300,6 @@ def run(
 COLUMNS = VIOLATION_KEYS  # position, velocity, acceleration, jerk, torque, impact
 
 
-def guaranteed(shield: str, target: Target | None = None) -> tuple:
-    """The limits ``shield`` guarantees on ``target``, of those its env measures: none for ``none``; position,
-    velocity, acceleration and torque for every bound method (torque: the arms' ``a_max`` is torque-derived;
-    not for ``JointLimitShield`` targets, ``Target.torque_claimed``), jerk for ``jerk``, the impulsive torque for
-    ``+impact``."""
-    if shield == "none":
-        return ()
-    method, *extras = shield.split("+")
-    claims = ("position", "velocity", "acceleration") + (("jerk",) if method == "jerk" else ())
-    claims += ("torque",) if target is None or target.torque_claimed else ()
-    claims += ("impact",) if "impact" in extras else ()
-    measured = VIOLATION_KEYS if target is None else target.measured
-    return tuple(k for k in claims if k in measured)
-
-
 def _cell(count: int, worst: float, claimed: bool) -> str:
     """``count (worst excess)``; in bold where the shield guarantees the limit, in italics where it does not."""
     text = "0" if count == 0 else f"{count:,} ({worst:.3g})"
@@ -463,7 +353,7 @@ def by_shield(rows) -> list[dict]:
 
 
 def claim_violations(row) -> int:
-    """Violating env-steps of ``row`` that break its shield's claim: the limits it guarantees (``guaranteed``),
+    """Violating env-steps of ``row`` that break its shield's claim: the limits it guarantees (``campaign_rows.guaranteed``),
     counted in the steps no contact had pushed the arm since the episode began (the joint-limit guarantee's
     scope: a contact the motors cannot hold pushes a joint on, counted apart), and every strike over the
     impulsive-torque bound (the impact cap's claim, which is about contacts)."""

@@ -10,7 +10,7 @@ reaches the env's reward). ``GymTarget.rows`` gives rows with exactly the keys o
 
 How a row runs (one env, stepped from Python; each step is the wrapper's decision, one XLA call, and C MuJoCo):
 
-- policy: ``campaign.campaign_policy`` (every class, the class a traced index), jitted once per action size and
+- policy: ``campaign_policies.campaign_policy`` (every class, the class a traced index), jitted once per action size and
   horizon and called once per step on the step's observation, ``t`` the step's index in its episode;
 - keys: episode ``e`` uses the key the jitted campaign's ``Evaluator`` gives its episode ``e``
   (``split(PRNGKey(seed + e // chunk), chunk)[e % chunk]``, split into the reset key and the policy's
@@ -55,6 +55,8 @@ from typing import Callable
 import numpy as np
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
+from jaxlimits.training.campaign_policies import campaign_policy
+from jaxlimits.training.campaign_rows import make_row
 
 GYM_SHIELDS = ("viability", "none")
 GYM_MEASURED = ("position", "velocity", "torque")
@@ -62,12 +64,10 @@ GYM_MEASURED = ("position", "velocity", "torque")
 
 @functools.lru_cache(maxsize=None)
 def _jitted_policy(n: int, horizon: int):
-    """``(jax.jit(policy), classes)`` of ``campaign.campaign_policy(n, horizon)`` (one per action size and horizon)."""
+    """``(jax.jit(policy), classes)`` of ``campaign_policy(n, horizon)`` (one per action size and horizon)."""
     import jax
 
-    from jaxlimits.training import campaign
-
-    policy, classes = campaign.campaign_policy(n, horizon)
+    policy, classes = campaign_policy(n, horizon)
     return jax.jit(policy), classes
 
 
@@ -102,7 +102,7 @@ def to_action_box(a, low, high) -> np.ndarray:
 class GymTarget:
     """A campaign target of a Gymnasium MuJoCo env: ``make(shield, max_episode_steps=None)`` -> the env
     (``NonFiniteActionGuardWrapper(JointLimitShieldWrapper(gymnasium.make(...)))``), its shields; ``measured`` and
-    ``torque_claimed`` as ``campaign.Target``'s (``campaign.guaranteed`` reads them)."""
+    ``torque_claimed`` as ``campaign.Target``'s (``campaign_rows.guaranteed`` reads them)."""
 
     name: str
     make: Callable
@@ -117,8 +117,6 @@ class GymTarget:
         docstring); the keys of ``campaign.run_row_set``'s rows. ``chunk``: the Brax rows' episodes per compiled
         call, for the episode keys only; other keywords (``trained``, ``action_repeat``) do not apply."""
         import jax.numpy as jnp
-
-        from jaxlimits.training import campaign
 
         t0 = time.perf_counter()
         env = self.make(shield, max_episode_steps=episode_length)
@@ -169,7 +167,7 @@ class GymTarget:
                     counts[f"violations/{k}"] = count[k]
                     counts[f"max_violation/{k}"] = worst[k]
                     counts[f"undisturbed_violations/{k}"] = undisturbed[k]
-                row = campaign.make_row(self, shield, cls, counts, wall, compile_s)
+                row = make_row(self, shield, cls, counts, wall, compile_s)
                 rows.append(row)
         finally:
             env.close()

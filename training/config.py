@@ -7,11 +7,11 @@ the resolved config next to the metrics so that a run can be repeated and its ch
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-ENVS = ("planar_reach", "panda_reach", "planar_wall")
+ENVS = ("planar_reach", "panda_reach", "panda_front_reach", "planar_wall")
 CONTACT_ENVS = ("planar_wall",)  # envs with contacts: the impact-aware speed cap applies (``impact``)
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
@@ -155,8 +155,14 @@ class RunConfig:
         return d
 
     def override(self, **kwargs) -> "RunConfig":
-        """A copy with the non-``None`` top-level fields replaced (the CLI's flags)."""
-        return replace(self, **{k: v for k, v in kwargs.items() if v is not None})
+        """A copy with the non-``None`` fields replaced (the CLI's flags), validated again; ``ppo=`` and
+        ``apg=`` take a dict of that section's fields to replace (the others kept), e.g.
+        ``cfg.override(num_timesteps=640, apg={"num_evals": 3})``."""
+        d = self.to_dict()
+        for key, value in kwargs.items():
+            if value is not None:
+                d[key] = {**d[key], **value} if key in _SECTIONS else value
+        return from_dict(d)
 
 
 def _check_section(section: str, cfg) -> None:

@@ -1,7 +1,7 @@
 """What the main job and the contact job share: train one run and evaluate it, one results table, the files.
 
 ``train_and_evaluate(cfg, run_dir)`` trains a run and evaluates its deterministic policy with its own
-shield over ``cfg.eval_episodes`` episodes. ``format_table(sections)`` is the one comparison table of
+shield over ``cfg.eval_episodes`` episodes (``evaluate_run``: the reload and evaluation alone). ``format_table(sections)`` is the one comparison table of
 every job: one row per trained run of every task (``reach``: one per shield, and the scripted IK
 reference; ``contact``: one per impact-cap variant), with the training tally over every env-step and
 the evaluation row side by side; a task's column that does not apply is ``–`` (the reach has no
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 from jaxlimits.training import algos, brax_ppo, checkpoint, evaluate, plots
 
@@ -28,26 +29,43 @@ PANELS = {
 }
 
 
-def train_and_evaluate(cfg, run_dir, show_progress: bool = True) -> dict:
-    """Train one run from ``cfg`` into ``run_dir``, reload its checkpoint and evaluate the deterministic
-    policy with its own shield over ``cfg.eval_episodes`` episodes (seed ``cfg.seed + 1``). Returns the
-    training totals, the training wall time and env-steps/s, and the evaluation row."""
-    summary = algos.train(cfg, run_dir, show_progress=show_progress)
-    run_cfg, policy, params = algos.load_policy(run_dir)
+class EvaluatedRun(NamedTuple):
+    """A trained run reloaded from its folder and evaluated: its config, env (``env_from_config``),
+    deterministic policy, parameters and ``evaluate.evaluate`` row."""
+
+    cfg: object
+    env: object
+    policy: object
+    params: object
+    row: dict
+
+
+def evaluate_run(run_dir, episodes: int | None = None) -> EvaluatedRun:
+    """Reload ``run_dir``'s checkpoint and evaluate the deterministic policy with its own shield over
+    ``episodes`` episodes (default: its config's ``eval_episodes``), seed ``cfg.seed + 1``."""
+    cfg, policy, params = algos.load_policy(run_dir)
+    env = brax_ppo.env_from_config(cfg)
     row = evaluate.evaluate(
-        brax_ppo.env_from_config(run_cfg),
+        env,
         policy,
         params,
-        episodes=cfg.eval_episodes,
+        episodes=cfg.eval_episodes if episodes is None else episodes,
         episode_length=cfg.episode_length,
         action_repeat=cfg.action_repeat,
         seed=cfg.seed + 1,
     )
+    return EvaluatedRun(cfg, env, policy, params, row)
+
+
+def train_and_evaluate(cfg, run_dir, show_progress: bool = True) -> dict:
+    """Train one run from ``cfg`` into ``run_dir``, then ``evaluate_run`` it over ``cfg.eval_episodes``
+    episodes. Returns the training totals, the training wall time and env-steps/s, and the evaluation row."""
+    summary = algos.train(cfg, run_dir, show_progress=show_progress)
     return {
         "training": summary["training"],
         "training_wall_s": summary["wall_s"],
         "training_env_steps_per_s": summary["env_steps_per_s"],
-        "evaluation": row,
+        "evaluation": evaluate_run(run_dir, cfg.eval_episodes).row,
     }
 
 
