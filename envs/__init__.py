@@ -13,6 +13,7 @@ _EXPORTS = {
     "ArmReach": "jaxlimits.envs.arm",
     "VIOLATION_KEYS": "jaxlimits.envs.arm",
     "make_panda_reach": "jaxlimits.envs.arm",
+    "make_panda_front_reach": "jaxlimits.envs.arm",
     "make_planar_reach": "jaxlimits.envs.arm",
     "SafetyWrapper": "jaxlimits.envs.safety",
     "JointLimitShield": "jaxlimits.envs.brax_shield",

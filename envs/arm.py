@@ -139,6 +139,10 @@ class ArmReach(Env):
         ``box_scale``. Sampling underestimates the worst case (Panda: s = 0.256 over 2e4 samples,
         0.218 over 1e6), hence 0.8; the torque-violation metric checks the outcome.
       reset_margin: initial positions are uniform in the range shrunk by this fraction at each end.
+      start: ``"random"`` (initial positions uniform in the shrunk range) or ``"home"`` (the model's
+        keyframe ``home`` with every joint scaled by a factor uniform in ``home_scale``, clipped to the
+        shrunk range: Isaac Lab's ``reset_joints_by_scale`` of its Reach-Franka task); see ``reset``.
+      home_scale: ``(low, high)`` of that factor.
       target: ``"reachable"`` (targets are end-effector positions of random configurations inside
         the limits) or ``"box"`` (uniform in ``[target_low, target_high]``); see ``reset``.
       ik_observation: append the damped least-squares joint step toward the target,
@@ -168,6 +172,8 @@ class ArmReach(Env):
         reset_margin: float = 0.1,
         seed: int = 0,
         target: str = "reachable",
+        start: str = "random",
+        home_scale=(0.5, 1.5),
         ik_observation: bool = False,
         precision_reward: float = 0.0,
     ):
@@ -208,6 +214,19 @@ class ArmReach(Env):
         if target not in ("reachable", "box"):
             raise ValueError(f"target must be 'reachable' or 'box', got {target!r}")
         self.target_mode = target
+        if start not in ("random", "home"):
+            raise ValueError(f"start must be 'random' or 'home', got {start!r}")
+        self.start_mode = start
+        self.home_qpos = None
+        if start == "home":
+            key = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_KEY, "home")
+            if key < 0:
+                raise ValueError(f"{xml_path}: start='home' needs a keyframe named 'home'")
+            self.home_qpos = mjm.key_qpos[key].copy()
+        lo_s, hi_s = (float(x) for x in home_scale)
+        if not (np.isfinite(lo_s) and np.isfinite(hi_s) and lo_s <= hi_s):
+            raise ValueError(f"home_scale must be finite (low, high) with low <= high, got {home_scale!r}")
+        self.home_scale = (lo_s, hi_s)
         self.ik_observation = bool(ik_observation)
         if not (np.isfinite(precision_reward) and precision_reward >= 0):
             raise ValueError(f"precision_reward must be a finite number >= 0, got {precision_reward!r}")
@@ -237,17 +256,23 @@ class ArmReach(Env):
         return jnp.asarray(x, jnp.float32)
 
     def reset(self, rng: jax.Array) -> State:
-        """Random start (uniform in the range shrunk by ``reset_margin``, at rest) and target.
+        """Random start (at rest) and target.
 
-        ``target="reachable"`` (default): the end-effector position of another random configuration
-        drawn the same way, so every target can be reached inside the joint limits;
-        ``target="box"``: uniform in ``[target_low, target_high]`` (some corners are out of reach).
+        ``start="random"`` (default): positions uniform in the range shrunk by ``reset_margin``;
+        ``start="home"``: the ``home`` keyframe scaled joint-wise by ``U(home_scale)``, clipped to it.
+        ``target="reachable"`` (default): the end-effector position of a random configuration drawn
+        uniform in the shrunk range, so every target can be reached inside the joint limits;
+        ``target="box"``: uniform in ``[target_low, target_high]`` (reachable only if the box is).
         """
         k_q, k_t = jax.random.split(rng)
         lim = self.limits
         span = lim.q_max - lim.q_min
         lo, hi = self._f32(lim.q_min + self.reset_margin * span), self._f32(lim.q_max - self.reset_margin * span)
-        q = jax.random.uniform(k_q, (self.n,), jnp.float32, lo, hi)
+        if self.start_mode == "home":
+            scale = jax.random.uniform(k_q, (self.n,), jnp.float32, *self.home_scale)
+            q = jnp.clip(self._f32(self.home_qpos) * scale, lo, hi)
+        else:
+            q = jax.random.uniform(k_q, (self.n,), jnp.float32, lo, hi)
         if self.target_mode == "reachable":
             q_t = jax.random.uniform(k_t, (self.n,), jnp.float32, lo, hi)
             target = self.ee_position(q_t)
@@ -406,3 +431,15 @@ def make_planar_reach(**kwargs) -> ArmReach:
 def make_panda_reach(**kwargs) -> ArmReach:
     """Mesh-free Franka Panda (``assets/panda.xml``), implicitfast, 5 substeps of 2 ms: dt = 10 ms."""
     return ArmReach(ASSETS / "panda.xml", "ee", (0.2, -0.5, 0.1), (0.7, 0.5, 0.8), **kwargs)
+
+
+PANDA_FRONT_BOX = ((0.35, -0.2, 0.15), (0.65, 0.2, 0.5))  # Isaac Lab Reach-Franka's target ranges [m]
+
+
+def make_panda_front_reach(**kwargs) -> ArmReach:
+    """The Panda reach of Isaac Lab's ``Isaac-Reach-Franka-v0``: start at the ``home`` keyframe with every
+    joint scaled by ``U(0.5, 1.5)``; target uniform in the box ``PANDA_FRONT_BOX`` in front of the robot
+    (x 0.35–0.65, y −0.2–0.2, z 0.15–0.5 m, base frame; here for the flange site, no orientation).
+    ``make_panda_reach``'s task (start and target anywhere in the joint ranges) is the harder one."""
+    kwargs = {"start": "home", "target": "box", **kwargs}
+    return ArmReach(ASSETS / "panda.xml", "ee", *PANDA_FRONT_BOX, **kwargs)

@@ -47,11 +47,12 @@ from jaxlimits.training.config import CONTACT_ENVS, RunConfig, from_dict
 def make_base_env(name: str, **kwargs):
     """The unshielded env (an ``ArmReach``; ``planar_wall``: a ``WallStrike``) for a config's ``env`` name
     (``kwargs`` go to its constructor)."""
-    from jaxlimits.envs import make_panda_reach, make_planar_reach, make_planar_wall_strike
+    from jaxlimits.envs import make_panda_front_reach, make_panda_reach, make_planar_reach, make_planar_wall_strike
 
     makers = {
         "planar_reach": make_planar_reach,
         "panda_reach": make_panda_reach,
+        "panda_front_reach": make_panda_front_reach,
         "planar_wall": make_planar_wall_strike,
     }
     return makers[name](**kwargs)
