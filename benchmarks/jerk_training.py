@@ -1,12 +1,14 @@
-"""Smooth motion: the planar reach trained under the jerk shield against the viability-only policy.
+"""Smooth motion: a reach trained under the jerk shield against the viability-only policy.
 
     taskset -c 0 nice -n 5 .venv/bin/python benchmarks/jerk_training.py [--out results/jerk_training]
     taskset -c 0 nice -n 5 .venv/bin/python benchmarks/jerk_training.py --quick   # tiny smoke run
+    .venv/bin/python benchmarks/jerk_training.py --config panda_front_reach_ppo --out results/jerk_panda
 
-Issue 15, item 3, first step: the Panda reach is not learnable yet in this project, so this is the
-planar 3-link reach (``envs/assets/planar3.xml``: ``jaxlimits_j_max`` = 500 / 600 / 750 rad/s^3, control
-period dt = 10 ms). Two Brax PPO runs of the same config (default ``planar_reach_ppo``: velocity actions,
-IK observation, 400-step episodes) that differ only in the shield: ``viability`` (position, velocity,
+Issue 15, item 3. Default: the planar 3-link reach (``envs/assets/planar3.xml``: ``jaxlimits_j_max`` =
+500 / 600 / 750 rad/s^3, control period dt = 10 ms); ``--config panda_front_reach_ppo``: the Panda reach
+(the datasheet's j_max 3750-10000 rad/s^3, which at dt = 10 ms and the torque-derived a_max cannot bind:
+2 a_max / dt <= 820 rad/s^3). Two Brax PPO runs of the same config (default ``planar_reach_ppo``: velocity
+actions, IK observation, 400-step episodes) that differ only in the shield: ``viability`` (position, velocity,
 acceleration limits) and ``jerk`` (the same plus ``|a_k - a_{k-1}| <= j_max dt``). ``--viability-run DIR``
 / ``--jerk-run DIR`` reuse finished run folders (``jaxlimits train ... --out DIR``) instead of training.
 
