@@ -120,6 +120,7 @@ SLOWEST_FILES_FIRST = (  # by measured duration (junit times of a full run), lon
     "test_notebooks.py",
     "test_training_apg.py",
     "test_envs_impact.py",
+    "test_panda_front_reach.py",
     "test_gym_shield.py",
     "test_mutation_net.py",
     "test_readme_figures.py",

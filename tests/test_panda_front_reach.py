@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from jaxlimits.envs.arm import ASSETS, PANDA_FRONT_BOX, ArmReach, make_panda_front_reach
+from jaxlimits.training import brax_ppo, config, evaluate, experiment  # at import: they set XLA flags
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +53,6 @@ def test_bad_start_options_raise():
 def test_the_shipped_config_builds_it_and_the_ik_reference_reaches_inside_the_limits():
     """``panda_front_reach_ppo`` (the Panda's learned reach) through the evaluator: the scripted IK reference
     reaches nearly every target within the episode, with 0 position, velocity and torque violations."""
-    from jaxlimits.training import brax_ppo, config, evaluate
-
     cfg = config.load("panda_front_reach_ppo")
     env = brax_ppo.env_from_config(cfg)
     policy = evaluate.ik_reference_policy(env.action_size, env.limits.v_max)
@@ -63,3 +62,15 @@ def test_the_shipped_config_builds_it_and_the_ik_reference_reaches_inside_the_li
     assert row["success_rate"] >= 14 / 16, row
     for k in ("position", "velocity", "torque"):
         assert row[f"violations/{k}"] == 0, (k, row)
+
+
+def test_trains_on_a_tiny_budget_with_zero_violations(tmp_path):
+    """The Panda reach's config end to end on a tiny budget (Brax PPO through the shield, reload, evaluate):
+    every training and evaluation env-step counted, 0 position, velocity and torque violations."""
+    cfg = config.load("tiny").override(env="panda_front_reach", eval_episodes=16)
+    result = experiment.train_and_evaluate(cfg, tmp_path / "run", show_progress=False)
+    train, ev = result["training"], result["evaluation"]
+    assert train["env_steps"] == brax_ppo.total_env_steps(cfg) >= 4000
+    assert ev["episodes"] == 16 and ev["env_steps"] == 16 * cfg.episode_length
+    for k in ("position", "velocity", "torque"):
+        assert train[f"violations/{k}"] == 0 and ev[f"violations/{k}"] == 0, k
