@@ -149,8 +149,7 @@ def run_shield(cfg, run_dir, *, reuse: bool, episodes: int, motion_episodes: int
     else:
         summary = algos.train(cfg, run_dir, show_progress=show_progress)
     t_train = time.perf_counter() - t0
-    run_cfg, env, policy, params, row = experiment.evaluate_run(run_dir, episodes)
-    seed = run_cfg.seed + 1
+    run_cfg, env, policy, params, row, seed = experiment.evaluate_run(run_dir, episodes)
     t0 = time.perf_counter()
     m = min(motion_episodes, episodes)
     roll = motion_rollout(

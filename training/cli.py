@@ -22,7 +22,7 @@ import json
 import sys
 
 from jaxlimits._xla_flags import set_cpu_xla_flags
-from jaxlimits.training.config import CONTACT_ENVS, ENVS
+from jaxlimits.training.config import ENVS, REACH_ENVS
 
 
 def _add_run_flags(p, default_out):
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     p_eval = sub.add_parser("evaluate", help="batch evaluation of a run folder or a scripted policy")
     p_eval.add_argument("--run", help="a run folder written by `train` (uses its env and shield)")
     p_eval.add_argument("--scripted", choices=("toward_limit", "bang_bang", "random"), help="a scripted policy instead")
-    p_eval.add_argument("--env", choices=tuple(e for e in ENVS if e not in CONTACT_ENVS), default="planar_reach")
+    p_eval.add_argument("--env", choices=REACH_ENVS, default="planar_reach")
     p_eval.add_argument("--shield", default="viability", help="shield(s) for --scripted, comma-separated")
     p_eval.add_argument("--episodes", type=int, default=10_000)
     p_eval.add_argument("--episode-length", type=int, default=200, help="for --scripted (a run uses its config's)")

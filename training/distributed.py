@@ -31,7 +31,7 @@ import json
 import sys
 
 from jaxlimits._xla_flags import set_cpu_xla_flags
-from jaxlimits.training.config import CONTACT_ENVS, ENVS
+from jaxlimits.training.config import REACH_ENVS
 
 
 def initialize(coordinator_address=None, num_processes=None, process_id=None, **kwargs) -> None:
@@ -62,9 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--process-id", type=int)
     p.add_argument("--run", help="a run folder written by `jaxlimits train` (uses its env, shield, episode length)")
     p.add_argument("--scripted", choices=("toward_limit", "bang_bang", "random"), help="a scripted policy instead")
-    p.add_argument(
-        "--env", choices=tuple(e for e in ENVS if e not in CONTACT_ENVS), default="planar_reach", help="for --scripted"
-    )
+    p.add_argument("--env", choices=REACH_ENVS, default="planar_reach", help="for --scripted")
     p.add_argument("--shield", default="viability", help="for --scripted")
     p.add_argument("--episodes", type=int, default=10_000)
     p.add_argument("--episode-length", type=int, default=200, help="for --scripted (a run uses its config's)")

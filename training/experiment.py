@@ -31,13 +31,14 @@ PANELS = {
 
 class EvaluatedRun(NamedTuple):
     """A trained run reloaded from its folder and evaluated: its config, env (``env_from_config``),
-    deterministic policy, parameters and ``evaluate.evaluate`` row."""
+    deterministic policy, parameters, ``evaluate.evaluate`` row and the evaluation's seed."""
 
     cfg: object
     env: object
     policy: object
     params: object
     row: dict
+    seed: int
 
 
 def evaluate_run(run_dir, episodes: int | None = None) -> EvaluatedRun:
@@ -45,6 +46,7 @@ def evaluate_run(run_dir, episodes: int | None = None) -> EvaluatedRun:
     ``episodes`` episodes (default: its config's ``eval_episodes``), seed ``cfg.seed + 1``."""
     cfg, policy, params = algos.load_policy(run_dir)
     env = brax_ppo.env_from_config(cfg)
+    seed = cfg.seed + 1
     row = evaluate.evaluate(
         env,
         policy,
@@ -52,9 +54,9 @@ def evaluate_run(run_dir, episodes: int | None = None) -> EvaluatedRun:
         episodes=cfg.eval_episodes if episodes is None else episodes,
         episode_length=cfg.episode_length,
         action_repeat=cfg.action_repeat,
-        seed=cfg.seed + 1,
+        seed=seed,
     )
-    return EvaluatedRun(cfg, env, policy, params, row)
+    return EvaluatedRun(cfg, env, policy, params, row, seed)
 
 
 def train_and_evaluate(cfg, run_dir, show_progress: bool = True) -> dict:

@@ -63,8 +63,8 @@ CAMERAS = {
     "planar_reach": ((0.0, 0.0, -0.1), 2.6, 90.0, -5.0),
     "planar_wall": ((0.25, 0.0, -0.45), 1.4, 90.0, -5.0),
     "panda_reach": ((0.25, 0.0, 0.4), 1.8, 135.0, -20.0),
-    "panda_front_reach": ((0.25, 0.0, 0.4), 1.8, 135.0, -20.0),
 }
+CAMERAS["panda_front_reach"] = CAMERAS["panda_reach"]  # the same robot
 WALL_RGBA = np.array([0.6, 0.55, 0.5, 1.0], np.float32)
 WALL_HALF_THICKNESS = 0.02  # [m], of the slab the wall is drawn as
 STRIP_ROW = 7  # [px] per joint in the limits strip
