@@ -7,6 +7,10 @@ commanded approach speed uniform in [0.05, 1.5] m/s (scripted resolved-rate stri
 strikes run through two shields: ``viability`` and ``viability+impact``. Prints a table, the
 Panda's maximum feasible contact velocity, a speed-vs-impulsive-torque table, the soft-vs-rigid
 ratio, and one JSON line.
+
+``--contact paper`` (default: the paper's reproduction, the README's table) predicts with Wang & Kheddar's
+rigid model; ``--contact coulomb`` with the env's default, ``CoulombContact(friction = 1)``: every impulse
+in the friction cone (sound for this contact, and more conservative). The home-posture cap of both is printed.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxlimits as jl  # noqa: E402
+import jaxlimits.impact as ji  # noqa: E402
 from jaxlimits.envs.safety import SafetyWrapper  # noqa: E402
 from jaxlimits.envs.wall_strike import HOME, make_wall_strike, rigid_prediction, strike_experiment  # noqa: E402
 
@@ -84,7 +89,17 @@ def home_caps(env):
     def cap(q):
         M, J, nrm = env.impact_terms(q, jnp.zeros_like(q))
         return jl.impact_speed_cap(
-            M, J, nrm, q, jnp.zeros_like(q), lim, spec.tau_imp_max, env.dt, spec.c_range[1], spec.dt_impact
+            M,
+            J,
+            nrm,
+            q,
+            jnp.zeros_like(q),
+            lim,
+            spec.tau_imp_max,
+            env.dt,
+            spec.c_range[1],
+            spec.dt_impact,
+            contact=spec.contact,
         )
 
     qs = jnp.asarray(HOME, jnp.float32) + jax.random.uniform(
@@ -115,17 +130,20 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=70)
     p.add_argument("--margin", type=float, default=1.0)
     p.add_argument("--quick", action="store_true", help="32 strikes (a smoke run)")
+    p.add_argument("--contact", choices=("paper", "coulomb"), default="paper", help="the cap's contact model")
     a = p.parse_args(argv)
     if a.quick:
         a.strikes, a.chunk = 32, 32
     t0 = time.time()
-    env = make_wall_strike()
+    env = make_wall_strike(contact_model=ji.PaperContact() if a.contact == "paper" else None)
     shields = [SafetyWrapper(env, "viability"), SafetyWrapper(env, "viability", impact={"margin": a.margin})]
     res = run_strikes(env, shields, a.strikes, a.chunk, a.steps)
     wall = time.time() - t0
     names = [w.name for w in shields]
     summ = {n: summary(env, res[n]) for n in names}
     c_home, caps = home_caps(env)
+    other = make_wall_strike(contact_model=None if a.contact == "paper" else ji.PaperContact())
+    c_home_other, caps_other = home_caps(other)
 
     keys = [
         "strikes",
@@ -159,6 +177,10 @@ def main(argv=None):
         f"(position {float(c_home.position):.3g}, velocity {float(c_home.velocity):.3g}, torque {float(c_home.torque):.4f}); "
         f"over 512 start states: min {caps.min():.4f}, median {np.median(caps):.4f}, max {caps.max():.4f} m/s"
     )
+    print(
+        f"the same with {other.impact.contact}: home {float(c_home_other.cap):.4f} m/s, over the 512 start states "
+        f"{caps_other.min():.4f}-{caps_other.max():.4f} m/s"
+    )
     print("\nimpact speed vs measured impulsive torque (worst joint, over its bound)")
     print(f"{'shield':10s}{'w [m/s]':>14s}{'strikes':>9s}{'mean':>8s}{'max':>8s}")
     table = speed_table(env, res[names[0]], res[names[1]])
@@ -172,10 +194,15 @@ def main(argv=None):
                 "strikes": a.strikes,
                 "steps": a.steps,
                 "margin": a.margin,
+                "contact": repr(env.impact.contact),
                 "wall_s": round(wall, 1),
                 "cap_home": float(c_home.cap),
                 "cap_start_min": float(caps.min()),
                 "cap_start_median": float(np.median(caps)),
+                "other_contact": repr(other.impact.contact),
+                "other_cap_home": float(c_home_other.cap),
+                "other_cap_start_min": float(caps_other.min()),
+                "other_cap_start_max": float(caps_other.max()),
                 "results": summ,
                 "speed_table": table,
             }

@@ -59,6 +59,7 @@ SAFETY = "tests/test_bounds_safety.py"
 SEMI_REF = "tests/test_semi_implicit_reference.py"
 CLOSED = "tests/test_semi_implicit_closed_forms.py"
 JERK = "tests/test_jerk.py"
+IMPACT = "tests/test_impact.py"
 
 MUTANTS = [
     Mutant(
@@ -215,6 +216,39 @@ MUTANTS = [
             f"{JERK}::test_position_threshold_matches_dense_bisection",
         ),
         "the jerk bounds' semi-implicit step peak misses the substep after the real maximiser (viability)",
+    ),
+    Mutant(
+        "impact_coulomb_spread_dropped",
+        "jaxlimits/_src/impact_contact.py",
+        "u_spread = mu * k[..., None] * _safe_norm(proj @ JMi, -2)",
+        "u_spread = 0.0 * k[..., None] * _safe_norm(proj @ JMi, -2)",
+        (
+            f"{IMPACT}::test_coulomb_set_contains_every_cone_impulse",
+            f"{IMPACT}::test_coulomb_cap_brute_force",
+        ),
+        "the Coulomb model forgets the tangential impulse's joint-velocity spread (the set misses cone impulses)",
+    ),
+    Mutant(
+        "impact_coulomb_friction_helps",
+        "jaxlimits/_src/impact_contact.py",
+        "den = nAn - mu * _safe_norm(",
+        "den = nAn + mu * _safe_norm(",
+        (
+            f"{IMPACT}::test_coulomb_set_contains_every_cone_impulse",
+            f"{IMPACT}::test_coulomb_cap_shrinks_with_friction_and_jams",
+        ),
+        "friction's sign flipped in the normal-impulse bound: the normal impulse under-bounded, no jamming",
+    ),
+    Mutant(
+        "impact_cap_spread_ignored",
+        "jaxlimits/_src/impact.py",
+        "up, down = slope + spread, slope - spread",
+        "up, down = slope, slope",
+        (
+            f"{IMPACT}::test_coulomb_cap_brute_force",
+            f"{IMPACT}::test_coulomb_constraint_rows_vs_direct",
+        ),
+        "the speed cap uses only the central jump of a model with a spread",
     ),
 ]
 

@@ -26,8 +26,10 @@ limits allow, the braking side), the motors may then saturate, and the step is c
 ``impact=`` (envs with ``impact_terms``, e.g. ``WallStrike``) adds the impact-aware speed cap of
 Wang & Kheddar (``jaxlimits.impact``, see ``docs/impact.md``): the largest contact-normal velocity
 whose predicted jumps keep the position (16), velocity (17) and impulsive torque (20) bounds, for
-every pre-impact velocity the step's box allows, is imposed on the end-effector velocity at the end
-of the step as one halfspace ``J^T n̂ . (v + a dt) <= margin * cap``. The excess is first removed
+every pre-impact velocity the step's box allows *and the next step's* (``v + dt [lower - a_max, upper +
+a_max]``: the velocity at the end of this step is the next step's approach speed, and a strike early in
+the next step meets it before that step's own cap can slow it down), is imposed on the end-effector velocity
+at the end of the step as one halfspace ``J^T n̂ . (v + a dt) <= margin * cap``. The excess is first removed
 along ``u = M^-1 J^T M_eq n̂`` (``J u = n̂``: the tangential end-effector acceleration is kept; a
 Euclidean projection alone would turn the excess into tangential motion), then the box and the
 halfspace go through ``jl.solve_box_qp(..., G=, h=)`` (box exact, halfspace with least violation when the box
@@ -96,7 +98,8 @@ class SafetyWrapper(Wrapper):
         does not depend on it.
       impact: ``None`` (off: behaviour unchanged), ``True`` (the env's ``impact`` spec) or a dict
         overriding any of ``c_range``, ``dt_impact``, ``tau_imp_max`` (n,) [N m], ``margin`` (the
-        cap is scaled by it, default 1.0), ``reg`` (see ``jaxlimits.impact``). Needs an env with
+        cap is scaled by it, default 1.0), ``reg``, ``contact`` (a ``jaxlimits.impact.ContactModel``;
+        the env's, ``CoulombContact(friction)`` for ``WallStrike``) (see ``jaxlimits.impact``). Needs an env with
         ``impact_terms(q, v) -> (M, J, normal)`` and an ``impact`` spec (``WallStrike``).
 
     Attributes: ``name`` (``method``, ``+torque_box``/``+impact`` when on; the key
@@ -156,6 +159,7 @@ class SafetyWrapper(Wrapper):
             "tau_imp_max": np.asarray(env.impact.tau_imp_max, np.float64),
             "margin": 1.0,
             "reg": _impact.DEFAULT_REG,
+            "contact": env.impact.contact,
         }
         if impact is not True:
             unknown = set(impact) - set(opts)
@@ -167,6 +171,8 @@ class SafetyWrapper(Wrapper):
         if not np.all(np.isfinite(tau)) or np.any(tau <= 0):
             raise ValueError(f"impact: tau_imp_max must be finite and > 0, got {tau.tolist()}")
         opts["tau_imp_max"] = tau
+        if not isinstance(opts["contact"], _impact.ContactModel):
+            raise ValueError(f"impact: contact must be a jaxlimits.impact.ContactModel, got {opts['contact']!r}")
         if not (float(opts["dt_impact"]) > 0 and 0 < float(opts["margin"]) <= 1.0):
             raise ValueError(
                 f"impact: need dt_impact > 0 and 0 < margin <= 1, got {opts['dt_impact']}, {opts['margin']}"
@@ -177,8 +183,10 @@ class SafetyWrapper(Wrapper):
         """``(G, h, cap, u)``: the speed cap [m/s] at the state, its halfspace in ``a`` (``G`` (..., 1, n))
         and the joint direction ``u = M^-1 J^T M_eq n̂`` (``J u = n̂``) along which ``_shield`` removes excess speed.
 
-        The cap holds for every pre-impact velocity ``v + dt [lower, upper]`` (the step's box).
-        Batched states are flattened and vmapped over.
+        The cap holds for every pre-impact velocity ``v + dt [lower - a_max, upper + a_max]`` within ``±v_max``: this
+        step's box and what the next step adds to it (a strike early in the next step comes at this step's end
+        velocity, and the rest of that step adds at most ``dt a_max``), clipped to the velocity limits the next
+        step's bounds keep. Batched states are flattened and vmapped over.
         """
         o = self.impact
         d = state.pipeline_state
@@ -186,8 +194,12 @@ class SafetyWrapper(Wrapper):
         n = self.env.n
         lead = q.shape[:-1]
         dt = jnp.float32(self.env.dt)
-        lo = (v + dt * lower).reshape((-1, n))
-        hi = (v + dt * upper).reshape((-1, n))
+        reach = jnp.broadcast_to(dt * jnp.asarray(self.limits.a_max, jnp.float32), v.shape)
+        v_max = jnp.broadcast_to(jnp.asarray(self.limits.v_max, jnp.float32), v.shape)
+        # the next step's bounds keep the velocity within v_max: a box reaching past it would read as (17) already
+        # violated at w = 0 and cap the speed at 0 whenever a joint runs near v_max
+        lo = jnp.maximum(v + dt * lower - reach, -v_max).reshape((-1, n))
+        hi = jnp.minimum(v + dt * upper + reach, v_max).reshape((-1, n))
         qf, vf = q.reshape((-1, n)), v.reshape((-1, n))
         M, J, nrm = jax.vmap(self.env.impact_terms)(qf, vf)
         cap = _impact.impact_speed_cap(
@@ -203,6 +215,7 @@ class SafetyWrapper(Wrapper):
             o["dt_impact"],
             o["reg"],
             v_pre_range=(jnp.minimum(lo, hi), jnp.maximum(lo, hi)),
+            contact=o["contact"],
         ).cap
         cap = cap * jnp.float32(o["margin"])
         G, h = _impact.speed_cap_halfspace(M, J, nrm, vf, cap, dt)

@@ -70,12 +70,15 @@ class ImpactSpec(NamedTuple):
     dt_impact: impact duration [s] (the paper's 0.005 s), distinct from the control step.
     tau_imp_max: (n,) impulsive joint torque bound [N m].
     window: measurement window after the first contact [s].
+    contact: the contact model of the predictions (``jaxlimits.impact.CoulombContact(mu)`` with the
+      ball-wall friction by default: the contact the simulator has).
     """
 
     c_range: tuple
     dt_impact: float
     tau_imp_max: np.ndarray
     window: float
+    contact: _impact.ContactModel
 
 
 @functools.lru_cache(maxsize=8)
@@ -147,6 +150,10 @@ class WallStrike(ArmReach):
       impulse_limit: reward clip on the normal impulse per step [N s]; contact_bonus per step in contact.
       ball_radius, solref, friction: contact parameters (``solref[0] = 0.004`` = 2 substeps is the
         stiffest MuJoCo allows at h = 2 ms).
+      contact_model: the impact predictions' contact model (``jaxlimits.impact.ContactModel``); ``None``:
+        ``CoulombContact(friction)``, the simulated contact (frictionless at ``friction = 0``). The
+        paper's ``PaperContact()`` under-predicts a frictionless contact's jump of a light distal joint
+        (see ``docs/impact.md``).
       **kwargs: ``ArmReach``'s (``torque_samples``, ``torque_margin``, ``seed``).
     """
 
@@ -168,6 +175,7 @@ class WallStrike(ArmReach):
         friction: float = 1.0,
         arm: str = "panda.xml",
         home=HOME,
+        contact_model=None,
         **kwargs,
     ):
         xml = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction), str(arm))
@@ -188,8 +196,11 @@ class WallStrike(ArmReach):
             raise ValueError(
                 f"WallStrike: dt_impact, window, tau_imp_scale must be > 0, got {dt_impact}, {window}, {tau_imp_scale}"
             )
+        contact = _impact.CoulombContact(friction) if contact_model is None else contact_model
+        if not isinstance(contact, _impact.ContactModel):
+            raise ValueError(f"WallStrike: contact_model must be a jaxlimits.impact.ContactModel, got {contact!r}")
         self.impact = ImpactSpec(
-            tuple(float(c) for c in c_range), float(dt_impact), tau_imp_scale * self.tau_max, float(window)
+            tuple(float(c) for c in c_range), float(dt_impact), tau_imp_scale * self.tau_max, float(window), contact
         )
         self.h = float(self.mj_model.opt.timestep)
         self.window_substeps = max(1, int(round(window / self.h)))

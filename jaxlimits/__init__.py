@@ -15,6 +15,7 @@ from jaxlimits._src.impact import (
     impact_speed_cap,
 )
 from jaxlimits._src.impact_cap import ImpactCap
+from jaxlimits._src.impact_contact import ContactModel, CoulombContact, PaperContact
 from jaxlimits._src.integrate import Step, integrate_step
 from jaxlimits._src.jerk import Jerk
 from jaxlimits._src.jerk_condition import check_jerk_condition
@@ -40,6 +41,8 @@ __all__ = [
     "Bounds",
     "BoxQPResult",
     "Constraint",
+    "ContactModel",
+    "CoulombContact",
     "INTEGRATORS",
     "ImpactCap",
     "ImpactJump",
@@ -52,6 +55,7 @@ __all__ = [
     "Naive",
     "PROJECTION_GRADIENTS",
     "SemiImplicit",
+    "PaperContact",
     "SpeedCap",
     "Step",
     "Terms",

@@ -11,8 +11,13 @@ from jaxlimits._src.impact import (
     impact_speed_cap,
     speed_cap_halfspace,
 )
+from jaxlimits._src.impact_contact import ContactModel, CoulombContact, PaperContact, UnitJumps
 
 __all__ = [
+    "ContactModel",
+    "CoulombContact",
+    "PaperContact",
+    "UnitJumps",
     "DEFAULT_REG",
     "ImpactJump",
     "SpeedCap",

@@ -260,3 +260,202 @@ def test_eager_errors():
     np.testing.assert_allclose(
         np.asarray(_jump(M, J6, nrm, v, 1e-6).dq), np.asarray(_jump(M, J, nrm, v, 1e-6).dq), rtol=1e-6
     )
+
+
+# ---- contact models (impact_contact.py) -------------------------------------------------------------
+MODELS = [ji.PaperContact(), ji.CoulombContact(0.0), ji.CoulombContact(0.7)]
+MODEL_IDS = ["paper", "frictionless", "coulomb0.7"]
+
+
+def cone_impulses(rng, nrm, A, w, c, mu, count):
+    """Random contact impulses ``p`` (on the wall, ``+n̂`` side) in the friction cone ``|p_t| <= mu p_n`` whose
+    normal contact-velocity change is ``-(1 + c) w``: ``n̂^T A p = (1 + c) w``; the joint jump is ``-M^-1 J^T p``.
+    Directions on the cone's boundary and inside it."""
+    t1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(nrm, t1)
+    out = []
+    for _ in range(count):
+        phi, r = rng.uniform(0, 2 * np.pi), mu * np.sqrt(rng.uniform()) if rng.uniform() < 0.5 else mu
+        d = nrm + r * (np.cos(phi) * t1 + np.sin(phi) * t2)
+        nAd = nrm @ A @ d
+        if nAd <= 0:
+            continue
+        out.append((1.0 + c) * w / nAd * d)
+    return np.array(out)
+
+
+def test_frictionless_matches_dense(dtype):
+    """CoulombContact(0): the impulse along n̂ with p = (1 + c) w / (n̂^T A n̂), dense float64 algebra."""
+    M, J, nrm, _, v = problem(21, batch=8)
+    jit = jax.jit(lambda *a: jl.impact_jump(*a, C, DTI, reg=0.0, contact=ji.CoulombContact(0.0)))
+    out = jit(*(jnp.asarray(x, dtype) for x in (M, J, nrm, v)))
+    assert out.dq.dtype == dtype
+    rtol = 1e-9 if dtype == np.float64 else 2e-3
+    for i in range(8):
+        Mi = np.linalg.inv(M[i])
+        A = J[i] @ Mi @ J[i].T
+        w = nrm[i] @ J[i] @ v[i]
+        p = (1.0 + C) * w / (nrm[i] @ A @ nrm[i]) * nrm[i]
+        dq_ref = -Mi @ J[i].T @ p
+        np.testing.assert_allclose(
+            np.asarray(out.dq[i], np.float64), dq_ref, rtol=rtol, atol=rtol * np.abs(dq_ref).max()
+        )
+        # the normal contact velocity jumps by -(1 + c) w, the tangential one changes too (unlike the paper's)
+        np.testing.assert_allclose(nrm[i] @ J[i] @ dq_ref, -(1 + C) * w, rtol=1e-9)
+        np.testing.assert_allclose(
+            M[i] @ dq_ref,
+            np.asarray(out.dtau[i], np.float64) * DTI,
+            rtol=10 * rtol,
+            atol=10 * rtol * np.abs(M[i] @ dq_ref).max(),
+        )
+    assert np.all(np.asarray(out.dq_spread) == 0.0) and np.all(np.asarray(out.dtau_spread) == 0.0)
+
+
+@pytest.mark.parametrize("mu", [0.3, 1.0])
+def test_coulomb_set_contains_every_cone_impulse(mu, x64):
+    """Every impulse in the friction cone with the normal restitution law gives a joint jump (and joint impulse)
+    inside the model's set theta w (dq_dw ± dq_spread), theta in [0, 1]; the set's ends are reached by some
+    impulse to within a factor of 10 (a per-joint box around the cone's image: conservative, not loose by orders),
+    except where friction can jam the contact (then the set is unbounded, the cap ~0)."""
+    checked = 0
+    rng = np.random.default_rng(31)
+    for seed in range(6):
+        M, J, nrm, _, v = problem(600 + seed)
+        jump = jl.impact_jump(M, J, nrm, v, C, DTI, reg=0.0, contact=ji.CoulombContact(mu))
+        w = float(jump.w)
+        if w <= 0:
+            v, w = -v, -w
+            jump = jl.impact_jump(M, J, nrm, v, C, DTI, reg=0.0, contact=ji.CoulombContact(mu))
+        A = J @ np.linalg.inv(M) @ J.T
+        jammed = nrm @ A @ nrm <= mu * np.linalg.norm((np.eye(3) - np.outer(nrm, nrm)) @ A @ nrm)
+        for c in (0.0, C):
+            ps = cone_impulses(rng, nrm, A, w, c, mu, 400)
+            dq = -np.linalg.solve(M, J.T @ ps.T).T  # (k, n)
+            dtau = -(J.T @ ps.T).T / DTI
+            for val, mid, spread in ((dq, jump.dq_dw, jump.dq_spread), (dtau, jump.dtau_dw, jump.dtau_spread)):
+                hi = np.maximum(0.0, w * (np.asarray(mid) + np.asarray(spread)))
+                lo = np.minimum(0.0, w * (np.asarray(mid) - np.asarray(spread)))
+                tol = 1e-9 * np.abs(val).max()
+                assert np.all(val <= hi + tol) and np.all(val >= lo - tol)
+                if c == C and not jammed:  # not vacuous: the sampled impulses use a good part of the box
+                    used = np.maximum(val.max(0) / np.maximum(hi, 1e-300), val.min(0) / np.minimum(lo, -1e-300))
+                    assert np.all(used > 0.1), used
+                    checked += 1
+    assert checked >= 4  # most of the random problems do not jam
+
+
+def _cap_fn(contact):
+    return jax.jit(
+        lambda M, J, n, q, v: jl.impact_speed_cap(M, J, n, q, v, LIM, TAU, DT, C, DTI, reg=0.0, contact=contact)
+    )
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.5])
+def test_coulomb_cap_brute_force(mu, x64):
+    """Below the cap every cone impulse keeps (16), (17), (20); mu = 0 (exact): just above it some row fails."""
+    rng = np.random.default_rng(41)
+    cap_f = _cap_fn(ji.CoulombContact(mu))
+    for seed in range(6):
+        M, J, nrm, q, v = problem(700 + seed)
+        v = 0.2 * v
+        cap = float(cap_f(M, J, nrm, q, v).cap)
+        assert np.isfinite(cap) and cap >= 0.0
+        A = J @ np.linalg.inv(M) @ J.T
+        for w in (0.5 * cap, cap * (1 - 1e-9)):
+            ps = cone_impulses(rng, nrm, A, w, C, mu, 300)
+            for p in ps:
+                dq = -np.linalg.solve(M, J.T @ p)
+                assert dense_ok(M, J, nrm, q, v, dq, -J.T @ p / DTI, tol=1e-7)
+        if mu == 0.0 and cap > 0:
+            p = (1 + C) * cap * 1.001 / (nrm @ A @ nrm) * nrm
+            assert not dense_ok(M, J, nrm, q, v, -np.linalg.solve(M, J.T @ p), -J.T @ p / DTI, tol=1e-9)
+
+
+def test_coulomb_cap_shrinks_with_friction_and_jams(x64):
+    """More friction, a wider set: the cap does not grow with mu; where friction can jam the contact
+    (n̂^T A n̂ <= mu |P_t A n̂|) the normal impulse is unbounded and the cap is ~0, finite."""
+    M, J, nrm, q, v = problem(800)
+    v = 0.1 * v
+    caps = [float(_cap_fn(ji.CoulombContact(mu))(M, J, nrm, q, v).cap) for mu in (0.0, 0.2, 0.5, 1.0)]
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(caps, caps[1:])), caps
+    A = J @ np.linalg.inv(M) @ J.T
+    P = np.eye(3) - np.outer(nrm, nrm)
+    mu_jam = 1.01 * (nrm @ A @ nrm) / np.linalg.norm(P @ A @ nrm)
+    cap = float(_cap_fn(ji.CoulombContact(mu_jam))(M, J, nrm, q, v).cap)
+    assert np.isfinite(cap) and 0.0 <= cap < 1e-6
+
+
+def test_coulomb_constraint_rows_vs_direct(x64):
+    """With a spread, G a <= h holds exactly when both ends of the set satisfy (16), (17), (20) at v + a dt."""
+    rng = np.random.default_rng(9)
+    contact = ji.CoulombContact(0.6)
+    M, J, nrm, q, v = problem(900)
+    v = 0.3 * v
+    G, h = jl.impact_constraints(M, J, nrm, q, v, LIM, TAU, DT, C, DTI, reg=0.0, contact=contact)
+    assert G.shape == (12 * N, N) and h.shape == (12 * N,)
+    for _ in range(40):
+        a = rng.normal(size=N) * 20.0
+        v_pre = v + DT * a
+        jmp = jl.impact_jump(M, J, nrm, v_pre, C, DTI, reg=0.0, contact=contact)
+        w = float(jmp.w)
+        ok = True
+        for sgn in (1.0, -1.0):
+            dq = w * (np.asarray(jmp.dq_dw) + sgn * np.asarray(jmp.dq_spread))
+            dtau = w * (np.asarray(jmp.dtau_dw) + sgn * np.asarray(jmp.dtau_spread))
+            ok &= dense_ok(M, J, nrm, q, v_pre, dq, dtau, tol=0.0)
+        assert ok == bool(np.all(np.asarray(G) @ a <= np.asarray(h)))
+
+
+@pytest.mark.parametrize("contact", MODELS, ids=MODEL_IDS)
+def test_contact_models_jit_vmap_grad_singular(contact, dtype):
+    """Every contact model: jit = eager = vmap, the dtype kept, finite values and gradients also at singular
+    Jacobians (rank 2, zero, 1e-20 scale)."""
+    M, J, nrm, q, v = problem(1000, batch=4)
+    J = J.copy()
+    J[0, 2] = J[0, 0]
+    J[1] = 0.0
+    J[2] *= 1e-20
+    args = [jnp.asarray(x, dtype) for x in (M, J, nrm, q, v)]
+
+    def total(M, J, n, q, v):
+        c = jl.impact_speed_cap(M, J, n, q, v, LIM, TAU, DT, C, DTI, contact=contact)
+        G, h = jl.impact_constraints(M, J, n, q, v, LIM, TAU, DT, C, DTI, contact=contact)
+        return jnp.sum(c.cap) + jnp.sum(G) + jnp.sum(h), c.cap
+
+    eager = total(*args)[1]
+    jitted = jax.jit(total)(*args)[1]
+    vm = jax.jit(jax.vmap(total))(*args)[1]
+    assert eager.dtype == dtype and np.all(np.isfinite(np.asarray(eager))) and np.all(np.asarray(eager) >= 0)
+    tol = 1e-10 if dtype == np.float64 else 1e-4
+    np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=tol)
+    np.testing.assert_allclose(np.asarray(vm), np.asarray(eager), rtol=tol)
+    grads = jax.jit(jax.grad(lambda *a: total(*a)[0], argnums=(0, 1, 3, 4)))(*args)
+    for gr in grads:
+        assert np.all(np.isfinite(np.asarray(gr)))
+
+
+def test_coulomb_gradients(x64):
+    M, J, nrm, q, v = problem(1100)
+    v = 0.2 * v
+
+    def cap(Jx, vx):
+        return jl.impact_speed_cap(M, Jx, nrm, q, vx, LIM, TAU, DT, C, DTI, contact=ji.CoulombContact(0.4)).cap
+
+    check_grads(jax.jit(cap), (J, v), order=1, modes=("fwd", "rev"), atol=1e-5, rtol=1e-5)
+
+
+def test_contact_model_errors():
+    M, J, nrm, q, v = problem(0)
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="mu must be"):
+            ji.CoulombContact(bad)
+    with pytest.raises(ValueError, match="contact must be a ContactModel"):
+        jl.impact_jump(M, J, nrm, v, C, DTI, contact="paper")
+    with pytest.raises(ValueError, match="contact must be a ContactModel"):
+        jl.ImpactCap(M, J, nrm, LIM, 50.0, DT, C, DTI, contact=0.5)
+    # the paper's model stays the default: the defaults reproduce it
+    np.testing.assert_array_equal(
+        np.asarray(jl.impact_jump(M, J, nrm, v, C, DTI).dq),
+        np.asarray(jl.impact_jump(M, J, nrm, v, C, DTI, contact=ji.PaperContact()).dq),
+    )

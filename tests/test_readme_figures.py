@@ -9,6 +9,7 @@ Each test asserts the claimed quantities (never timings: those are only checked 
   rounding guard (0866429): the same run now stops 0.35 mrad short (346 urad at 0.0032 rad/s), which is asserted.
 - ``test_impact_home_cap``: "Impact-aware speed caps": the Panda's maximum feasible contact speed 0.085 m/s at
   the home posture, 0.080-0.096 m/s over the 512 start states, constraint (20) binding, (17) allowing 0.46 m/s
+  (the paper's contact model), and 0.029 m/s (0.026-0.037) with the env's default ``CoulombContact(1)``
   (``benchmarks/impact_strikes.py``'s ``home_caps``, the full computation: it costs seconds).
 - ``test_impact_strikes_reduced``: the same section's strike table (10^4 strikes: capped 0 over the impulsive-
   torque bound, worst ratio 0.955; uncapped 8 892 / 9 959 over, max 2.91), on 128 strikes
@@ -87,9 +88,16 @@ def test_paper_vb_naive_overshoots_viability_stops_short():
 def test_impact_home_cap():
     from jaxlimits.envs.wall_strike import make_wall_strike
 
+    import jaxlimits.impact as ji
+
     strikes = load_benchmark("impact_strikes")
     with jax.numpy_rank_promotion("allow"):  # the script adds HOME (n,) to the (512, n) offsets
-        c_home, caps = strikes.home_caps(make_wall_strike())
+        c_home, caps = strikes.home_caps(make_wall_strike(contact_model=ji.PaperContact()))
+        c_coulomb, caps_coulomb = strikes.home_caps(make_wall_strike())
+    # "with the env's default contact model, CoulombContact(mu = 1): 0.029 m/s at home, 0.026-0.037 over the starts"
+    assert float(c_coulomb.cap) == pytest.approx(0.029, abs=1e-3), c_coulomb
+    assert float(c_coulomb.cap) == float(c_coulomb.torque)
+    assert caps_coulomb.min() == pytest.approx(0.026, abs=1e-3) and caps_coulomb.max() == pytest.approx(0.037, abs=1e-3)
     cap, pos, vel, tor = (float(x) for x in (c_home.cap, c_home.position, c_home.velocity, c_home.torque))
     # "maximum feasible contact velocity 0.085 m/s at the home posture; constraint (20) binds, (17) would allow 0.46"
     assert cap == pytest.approx(0.085, abs=1e-3), c_home

@@ -13,6 +13,14 @@ A point contact with Jacobian ``J`` (3, n) hits a wall whose normal ``n̂`` is k
 Every jump is linear in ``w``; the worst case of the restitution range ``[c_min, c_max]`` is
 ``c_max`` (the jumps grow with ``1 + c``), which is what the functions take.
 
+The contact model is an argument (``contact=``, ``impact_contact.py``): ``PaperContact()`` (the
+default) is the model above, in which the contact point's velocity jumps along ``n̂`` only;
+``CoulombContact(mu)`` bounds every impulse in the friction cone (``mu = 0``: frictionless, exact),
+as a central jump and a spread. Measured in MuJoCo (planar wall strike, frictionless soft contact,
+79 strikes): the joint-velocity jump lies along ``M^-1 J^T n̂`` to 1e-7, the frictionless model's
+direction, while the paper's direction misses by 70 % (median) and under-predicts the light distal
+joint's jump up to 157x; ``docs/impact.md`` has the measurement.
+
 Constraints (``impact_constraints``), with ``dt`` the control step and the impact assumed at the
 end of the step about to be commanded (``v_pre = v + a dt``, the paper's (13)):
 
@@ -50,6 +58,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from jaxlimits._src.impact_contact import PAPER, check_contact
 from jaxlimits._src.qp_checks import concrete
 from jaxlimits._src.safe_math import tiny_floor
 
@@ -64,6 +73,9 @@ class ImpactJump(NamedTuple):
     dtau: (..., n) impulsive joint torque (19) [N m].
     force: (..., 3) average impulsive contact force (5) [N].
     dq_dw, dtau_dw: (..., n) the jumps per unit ``w`` (``-(1 + c) u`` and ``-(1 + c) t / dt_imp``).
+    dq_spread, dtau_spread: (..., n) >= 0, per unit ``w``: a strike at ``w >= 0`` gives a jump in
+      ``theta w (dq_dw ± dq_spread)``, ``theta in [0, 1]`` (componentwise; likewise ``dtau``). Zero for an
+      exact contact model (``PaperContact``, ``CoulombContact(0)``), where ``dq`` is the jump.
     """
 
     w: jnp.ndarray
@@ -72,6 +84,8 @@ class ImpactJump(NamedTuple):
     force: jnp.ndarray
     dq_dw: jnp.ndarray
     dtau_dw: jnp.ndarray
+    dq_spread: jnp.ndarray
+    dtau_spread: jnp.ndarray
 
 
 class SpeedCap(NamedTuple):
@@ -164,25 +178,8 @@ def _promote(*xs):
     return [jnp.asarray(x, dtype) for x in xs]
 
 
-def _directions(M, J, normal, reg):
-    """``(g, u, t, M_eq n̂)``: ``g = J^T n̂`` (so ``w = g . v``), ``u = M^-1 J^T M_eq n̂``, ``t = J^T M_eq n̂ = M u``."""
-    J = _lin(J)
-    n = M.shape[-1]
-    lead = jnp.broadcast_shapes(M.shape[:-2], J.shape[:-2], normal.shape[:-1])
-    M = jnp.broadcast_to(M, lead + (n, n))
-    J = jnp.broadcast_to(J, lead + (3, n))
-    nvec = jnp.broadcast_to(normal, lead + (3,))
-    MiJt = _minv_jt(M, J)  # (..., n, 3)
-    Ar = _reg_A(J @ MiJt, reg)
-    meq_n = jnp.linalg.solve(Ar, nvec[..., None])[..., 0]  # (..., 3)
-    g = jnp.einsum("...in,...i->...n", J, nvec)
-    u = jnp.einsum("...ni,...i->...n", MiJt, meq_n)
-    t = jnp.einsum("...in,...i->...n", J, meq_n)
-    return g, u, t, meq_n
-
-
-def impact_jump(M, J, normal, v, c_max, dt_impact, reg=DEFAULT_REG) -> ImpactJump:
-    """The jumps an impact would cause at joint velocity ``v`` (eqs. 3-5, 19, 22).
+def impact_jump(M, J, normal, v, c_max, dt_impact, reg=DEFAULT_REG, contact=PAPER) -> ImpactJump:
+    """The jumps an impact would cause at joint velocity ``v`` (eqs. 3-5, 19, 22; ``contact``'s model).
 
     Args:
       M: (..., n, n) joint-space inertia [kg m^2]. J: (..., 3 or 6, n) contact Jacobian.
@@ -190,24 +187,28 @@ def impact_jump(M, J, normal, v, c_max, dt_impact, reg=DEFAULT_REG) -> ImpactJum
       c_max: worst-case restitution coefficient (upper end of ``[c_min, c_max]``, see
         ``check_restitution``), a scalar. dt_impact: impact duration [s] (not the control step), a scalar.
       reg: relative regularisation of ``J M^-1 J^T``.
-    Returns ``ImpactJump``. The formulas are the paper's, linear in ``w`` (not gated by its sign).
+      contact: the contact model (``impact_contact``): ``PaperContact()`` (the paper's (22), default) or
+        ``CoulombContact(mu)`` (an impulse in the friction cone; ``mu = 0``: frictionless).
+    Returns ``ImpactJump``: the central jumps (for an exact model, the jumps), linear in ``w`` (not gated
+    by its sign), and the spreads around them (zero for an exact model).
     """
     _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, reg=reg)
+    contact = check_contact(contact)
     M, J, normal, v = _promote(M, J, normal, v)
     dtype = M.dtype
     k = 1.0 + jnp.asarray(c_max, dtype)
     kt = k / jnp.asarray(dt_impact, dtype)
-    g, u, t, meq_n = _directions(M, J, normal, reg)
-    lead = jnp.broadcast_shapes(g.shape, v.shape)
-    g, u, t, v = (jnp.broadcast_to(x, lead) for x in (g, u, t, v))
-    meq_n = jnp.broadcast_to(meq_n, lead[:-1] + (3,))
+    unit = contact.unit_jumps(M, _lin(J), normal, reg)
+    lead = jnp.broadcast_shapes(unit.g.shape, v.shape)
+    g, u, t, us, ts, v = (jnp.broadcast_to(x, lead) for x in (unit.g, unit.u, unit.t, unit.u_spread, unit.t_spread, v))
+    impulse = jnp.broadcast_to(unit.impulse, lead[:-1] + (3,))
     w = jnp.sum(g * v, axis=-1)
     dq_dw = -k * u
     dtau_dw = -kt * t
     dq = dq_dw * w[..., None]
     dtau = dtau_dw * w[..., None]
-    force = -kt * w[..., None] * meq_n
-    return ImpactJump(w, dq, dtau, force, dq_dw, dtau_dw)
+    force = -kt * w[..., None] * impulse
+    return ImpactJump(w, dq, dtau, force, dq_dw, dtau_dw, k * us, kt * ts)
 
 
 def _bounds(q, v_pre, q_min, q_max, v_max, tau_imp_max, dt):
@@ -219,7 +220,7 @@ def _bounds(q, v_pre, q_min, q_max, v_max, tau_imp_max, dt):
 
 
 def impact_speed_cap(
-    M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, v_pre_range=None
+    M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, v_pre_range=None, contact=PAPER
 ) -> SpeedCap:
     """The largest approach velocity ``w >= 0`` whose predicted jumps satisfy (16), (17), (20).
 
@@ -232,10 +233,12 @@ def impact_speed_cap(
     scalar, the impulsive torque bound [N m] (> 0); ``dt`` the control step [s]; the rest as in
     ``impact_jump``. ``v_pre_range``: optional ``(v_lo, v_hi)`` (..., n): the pre-impact velocity is
     only known to lie in this box (e.g. ``v + dt [lower, upper]`` for the next step's commands); (17)
-    then holds for every velocity in it: ``-v_max - v_lo <= dq <= v_max - v_hi``.
+    then holds for every velocity in it: ``-v_max - v_lo <= dq <= v_max - v_hi``. ``contact``: the
+    contact model; with a spread (``CoulombContact(mu > 0)``) every jump of its set must satisfy the
+    rows: the upper bounds by ``w (dq_dw + dq_spread)``, the lower by ``w (dq_dw - dq_spread)``.
     """
     _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg, tau_imp_max=tau_imp_max)
-    jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg)
+    jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg, contact)
     dtype = jump.dq.dtype
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     q, v = jnp.broadcast_to(f(q), jump.dq.shape), jnp.broadcast_to(f(v), jump.dq.shape)
@@ -246,23 +249,26 @@ def impact_speed_cap(
         vel = (-b(limits.v_max) - v_lo, b(limits.v_max) - v_hi)
     floor = tiny_floor(dtype)
 
-    def cap_of(slope, lo_hi):
+    def cap_of(slope, spread, lo_hi):
         lo, hi = lo_hi
-        # for w >= 0 the row is slope * w; it meets hi when slope > 0 and lo when slope < 0
-        room = jnp.where(slope > 0, hi, -lo)
+        # for w >= 0 the jump lies in w [slope - spread, slope + spread] (and its multiples by [0, 1]): the
+        # upper end meets hi where it is > 0, the lower end meets lo where it is < 0
+        up, down = slope + spread, slope - spread
+        cap_up = jnp.where(up > 0, jnp.maximum(hi, 0.0) / jnp.maximum(up, floor), 1.0 / floor)
+        cap_down = jnp.where(down < 0, jnp.maximum(-lo, 0.0) / jnp.maximum(-down, floor), 1.0 / floor)
         # a row already violated at w = 0 (lo > 0 or hi < 0) caps the family at 0, even where the jump would
         # move back toward the bound: the post-impact state would still be outside it
-        room = jnp.where((lo > 0) | (hi < 0), 0.0, jnp.maximum(room, 0.0))
-        return jnp.min(room / jnp.maximum(jnp.abs(slope), floor), axis=-1)
+        room = jnp.where((lo > 0) | (hi < 0), 0.0, jnp.minimum(cap_up, cap_down))
+        return jnp.min(room, axis=-1)
 
-    cp = cap_of(jump.dq_dw, pos)
-    cv = cap_of(jump.dq_dw, vel)
-    ct = cap_of(jump.dtau_dw, tau)
+    cp = cap_of(jump.dq_dw, jump.dq_spread, pos)
+    cv = cap_of(jump.dq_dw, jump.dq_spread, vel)
+    ct = cap_of(jump.dtau_dw, jump.dtau_spread, tau)
     cap = jnp.minimum(jnp.minimum(cp, cv), ct)
     return SpeedCap(cap, cp, cv, ct)
 
 
-def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG):
+def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, contact=PAPER):
     """The constraints (16), (17), (20) as ``G a <= h`` in the joint acceleration ``a`` [rad/s^2].
 
     The impact is predicted at the end of the step: ``v_pre = v + a dt`` (13), so
@@ -270,45 +276,53 @@ def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_im
 
     Returns ``(G, h)``: ``G`` (..., 6 n, n), ``h`` (..., 6 n); rows in the order
     [(16) upper, (16) lower, (17) upper, (17) lower, (20) upper, (20) lower], each block ``n`` rows
-    (joint order). Ungated by the sign of ``w``, as in the paper.
+    (joint order). Ungated by the sign of ``w``, as in the paper. With a contact model that has a
+    spread the jump set's two extremes ``w (dq_dw ± dq_spread)`` each get these ``6 n`` rows (``+``
+    first): ``G`` (..., 12 n, n).
     """
     _check(M, J, normal, c_max=c_max, dt_impact=dt_impact, dt=dt, reg=reg, tau_imp_max=tau_imp_max)
-    jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg)
+    jump = impact_jump(M, J, normal, v, c_max, dt_impact, reg, contact)
     dtype = jump.dq.dtype
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     lead = jump.dq.shape
     q, v = jnp.broadcast_to(f(q), lead), jnp.broadcast_to(f(v), lead)
     dt = f(dt)
-    g = jnp.broadcast_to(_directions(f(M), f(J), f(normal), reg)[0], lead)
-    n = q.shape[-1]
-    w0 = jump.w[..., None]
-    # jump(a) = s * (w0 + dt g . a): rows  s dt g^T a  <=  hi - s w0  /  -s dt g^T a <= -lo + s w0
+    g = jnp.broadcast_to(contact.unit_jumps(f(M), _lin(f(J)), f(normal), reg).g, lead)
     b = lambda x: jnp.broadcast_to(f(x), lead)  # noqa: E731
     (plo, phi), (_, _), (tlo, thi) = _bounds(
         q, v, b(limits.q_min), b(limits.q_max), b(limits.v_max), b(tau_imp_max), dt
     )
-    sq, st = jump.dq_dw, jump.dtau_dw
-    outer_q = dt * sq[..., :, None] * g[..., None, :]  # (..., n, n)
-    outer_t = dt * st[..., :, None] * g[..., None, :]
-    eye = jnp.broadcast_to(jnp.eye(n, dtype=dtype), outer_q.shape)
     vmax = b(limits.v_max)
-    # (17): v + dt a + s (w0 + dt g.a) <= v_max   and   >= -v_max
-    vel_G = dt * eye + outer_q
-    G = jnp.concatenate([outer_q, -outer_q, vel_G, -vel_G, outer_t, -outer_t], axis=-2)
-    lead = G.shape[:-2]
-    bc = lambda x: jnp.broadcast_to(x, lead + (n,))  # noqa: E731
-    h = jnp.concatenate(
-        [
-            bc(phi - sq * w0),
-            bc(-plo + sq * w0),
-            bc(vmax - v - sq * w0),
-            bc(vmax + v + sq * w0),
-            bc(thi - st * w0),
-            bc(-tlo + st * w0),
-        ],
-        axis=-1,
-    )
-    return G, h
+    w0 = jump.w[..., None]
+    n = q.shape[-1]
+
+    def rows(sq, st):
+        # jump(a) = s * (w0 + dt g . a): rows  s dt g^T a  <=  hi - s w0  /  -s dt g^T a <= -lo + s w0
+        outer_q = dt * sq[..., :, None] * g[..., None, :]  # (..., n, n)
+        outer_t = dt * st[..., :, None] * g[..., None, :]
+        eye = jnp.broadcast_to(jnp.eye(n, dtype=dtype), outer_q.shape)
+        # (17): v + dt a + s (w0 + dt g.a) <= v_max   and   >= -v_max
+        vel_G = dt * eye + outer_q
+        G = jnp.concatenate([outer_q, -outer_q, vel_G, -vel_G, outer_t, -outer_t], axis=-2)
+        bc = lambda x: jnp.broadcast_to(x, G.shape[:-2] + (n,))  # noqa: E731
+        h = jnp.concatenate(
+            [
+                bc(phi - sq * w0),
+                bc(-plo + sq * w0),
+                bc(vmax - v - sq * w0),
+                bc(vmax + v + sq * w0),
+                bc(thi - st * w0),
+                bc(-tlo + st * w0),
+            ],
+            axis=-1,
+        )
+        return G, h
+
+    if contact.exact:
+        return rows(jump.dq_dw, jump.dtau_dw)
+    G_up, h_up = rows(jump.dq_dw + jump.dq_spread, jump.dtau_dw + jump.dtau_spread)
+    G_dn, h_dn = rows(jump.dq_dw - jump.dq_spread, jump.dtau_dw - jump.dtau_spread)
+    return jnp.concatenate([G_up, G_dn], axis=-2), jnp.concatenate([h_up, h_dn], axis=-1)
 
 
 def speed_cap_halfspace(M, J, normal, v, cap, dt):

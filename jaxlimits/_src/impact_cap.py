@@ -12,6 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jaxlimits._src.impact import DEFAULT_REG, impact_speed_cap, speed_cap_halfspace
+from jaxlimits._src.impact_contact import PAPER, check_contact
 from jaxlimits._src.limit import AccelerationLimit, Terms
 
 
@@ -21,20 +22,34 @@ class ImpactCap(AccelerationLimit):
     ``limits`` (``q_min``, ``q_max``, ``v_max``), ``tau_imp_max`` [N m], ``dt`` [s], ``c_max``,
     ``dt_impact`` [s] and ``reg`` as in ``impact_speed_cap``; ``margin`` in ``(0, 1]`` scales the cap;
     ``v_pre_range``: optional ``(v_lo, v_hi)``, the box the pre-impact velocity lies in (e.g.
-    ``v + dt [lower, upper]`` of the other limits' bounds). ``viable``: ``cap > 0`` (some approach
+    ``v + dt [lower, upper]`` of the other limits' bounds); ``contact``: the contact model
+    (``PaperContact()`` or ``CoulombContact(mu)``, see ``impact_contact``). ``viable``: ``cap > 0`` (some approach
     speed is safe). ``cap(q, v)`` gives the cap itself [m/s], shape ``(...)``.
     """
 
     has_rows = True
 
     def __init__(
-        self, M, J, normal, limits, tau_imp_max, dt, c_max, dt_impact, reg=DEFAULT_REG, margin=1.0, v_pre_range=None
+        self,
+        M,
+        J,
+        normal,
+        limits,
+        tau_imp_max,
+        dt,
+        c_max,
+        dt_impact,
+        reg=DEFAULT_REG,
+        margin=1.0,
+        v_pre_range=None,
+        contact=PAPER,
     ):
         if not 0.0 < float(margin) <= 1.0:
             raise ValueError(f"ImpactCap: margin must be in (0, 1], got {margin!r}")
         self.M, self.J, self.normal, self.limits = M, J, normal, limits
         self.tau_imp_max, self.dt, self.c_max, self.dt_impact = tau_imp_max, dt, c_max, dt_impact
         self.reg, self.margin, self.v_pre_range = reg, margin, v_pre_range
+        self.contact = check_contact(contact)
 
     def cap(self, q, v):
         c = impact_speed_cap(
@@ -50,6 +65,7 @@ class ImpactCap(AccelerationLimit):
             self.dt_impact,
             self.reg,
             v_pre_range=self.v_pre_range,
+            contact=self.contact,
         ).cap
         return c * self.margin
 
