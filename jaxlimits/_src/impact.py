@@ -17,9 +17,9 @@ The contact model is an argument (``contact=``, ``impact_contact.py``): ``PaperC
 default) is the model above, in which the contact point's velocity jumps along ``n̂`` only;
 ``CoulombContact(mu)`` bounds every impulse in the friction cone (``mu = 0``: frictionless, exact),
 as a central jump and a spread. Measured in MuJoCo (planar wall strike, frictionless soft contact,
-79 strikes): the joint-velocity jump lies along ``M^-1 J^T n̂`` to 1e-7, the frictionless model's
-direction, while the paper's direction misses by 70 % (median) and under-predicts the light distal
-joint's jump up to 157x; ``docs/impact.md`` has the measurement.
+222 strikes): the joint-velocity jump lies along ``M^-1 J^T n̂``, the frictionless model's direction, to a
+relative 1.9e-7, while the paper's direction misses by 70 % (median) and under-predicts the light distal
+joint's jump in 221 of the 222 (median 4x); ``docs/impact.md`` has the measurement.
 
 Constraints (``impact_constraints``), with ``dt`` the control step and the impact assumed at the
 end of the step about to be commanded (``v_pre = v + a dt``, the paper's (13)):
