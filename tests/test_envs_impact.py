@@ -56,6 +56,15 @@ def test_wrapper_structure_and_errors(env):
         SafetyWrapper(env, "viability", impact={"c_range": (0.5, 0.1)})
     with pytest.raises(ValueError, match="margin"):
         SafetyWrapper(env, "viability", impact={"margin": 0.0})
+    # the contact model: the env's by default (the Panda wall's friction 1), overridable, validated
+    assert isinstance(env.impact.contact, ji.CoulombContact) and env.impact.contact.mu == 1.0
+    assert SafetyWrapper(env, "viability", impact=True).impact["contact"] is env.impact.contact
+    paper = ji.PaperContact()
+    assert SafetyWrapper(env, "viability", impact={"contact": paper}).impact["contact"] is paper
+    with pytest.raises(ValueError, match="contact must be"):
+        SafetyWrapper(env, "viability", impact={"contact": "paper"})
+    with pytest.raises(ValueError, match="contact_model must be"):
+        make_planar_wall_strike(contact_model=0.5)
 
 
 def test_planar_frictionless_jumps_are_predicted():
