@@ -171,8 +171,7 @@ class SafetyWrapper(Wrapper):
         if not np.all(np.isfinite(tau)) or np.any(tau <= 0):
             raise ValueError(f"impact: tau_imp_max must be finite and > 0, got {tau.tolist()}")
         opts["tau_imp_max"] = tau
-        if not isinstance(opts["contact"], _impact.ContactModel):
-            raise ValueError(f"impact: contact must be a jaxlimits.impact.ContactModel, got {opts['contact']!r}")
+        _impact.check_contact(opts["contact"])
         if not (float(opts["dt_impact"]) > 0 and 0 < float(opts["margin"]) <= 1.0):
             raise ValueError(
                 f"impact: need dt_impact > 0 and 0 < margin <= 1, got {opts['dt_impact']}, {opts['margin']}"

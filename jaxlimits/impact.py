@@ -11,7 +11,7 @@ from jaxlimits._src.impact import (
     impact_speed_cap,
     speed_cap_halfspace,
 )
-from jaxlimits._src.impact_contact import ContactModel, CoulombContact, PaperContact, UnitJumps
+from jaxlimits._src.impact_contact import ContactModel, CoulombContact, PaperContact, UnitJumps, check_contact
 
 __all__ = [
     "ContactModel",
@@ -21,6 +21,7 @@ __all__ = [
     "DEFAULT_REG",
     "ImpactJump",
     "SpeedCap",
+    "check_contact",
     "check_restitution",
     "equivalent_mass",
     "impact_constraints",

@@ -58,7 +58,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jaxlimits._src.impact_contact import PAPER, check_contact
+from jaxlimits._src.impact_contact import PAPER, check_contact, minv_jt, regularised
 from jaxlimits._src.qp_checks import concrete
 from jaxlimits._src.safe_math import tiny_floor
 
@@ -145,18 +145,6 @@ def _lin(J):
     return J[..., :3, :]
 
 
-def _minv_jt(M, J):
-    """``M^-1 J^T`` (..., n, 3) by a linear solve (``M`` is symmetric positive definite)."""
-    return jnp.linalg.solve(M, jnp.swapaxes(J, -1, -2))
-
-
-def _reg_A(A, reg):
-    dtype = A.dtype
-    tr = jnp.trace(A, axis1=-2, axis2=-1)
-    lam = jnp.asarray(reg, dtype) * tr / 3.0 + tiny_floor(dtype)
-    return A + lam[..., None, None] * jnp.broadcast_to(jnp.eye(3, dtype=dtype), A.shape)
-
-
 def equivalent_mass(M, J, reg=DEFAULT_REG):
     """The equivalent (operational-space) mass ``M_eq = (J M^-1 J^T + lam I)^-1`` (6), ``(..., 3, 3)`` [kg].
 
@@ -167,9 +155,8 @@ def equivalent_mass(M, J, reg=DEFAULT_REG):
     _check(M, J, reg=reg)
     M, J = _promote(M, J)
     J = _lin(J)
-    A = J @ _minv_jt(M, J)
-    Ar = _reg_A(A, reg)
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=A.dtype), Ar.shape)
+    Ar = regularised(J @ minv_jt(M, J), reg)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=Ar.dtype), Ar.shape)
     return jnp.linalg.solve(Ar, eye)
 
 
@@ -287,7 +274,7 @@ def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_im
     lead = jump.dq.shape
     q, v = jnp.broadcast_to(f(q), lead), jnp.broadcast_to(f(v), lead)
     dt = f(dt)
-    g = jnp.broadcast_to(contact.unit_jumps(f(M), _lin(f(J)), f(normal), reg).g, lead)
+    g = jnp.broadcast_to(jnp.einsum("...in,...i->...n", _lin(f(J)), f(normal)), lead)  # J^T n̂: w = g . v
     b = lambda x: jnp.broadcast_to(f(x), lead)  # noqa: E731
     (plo, phi), (_, _), (tlo, thi) = _bounds(
         q, v, b(limits.q_min), b(limits.q_max), b(limits.v_max), b(tau_imp_max), dt

@@ -38,6 +38,7 @@ jit/vmap/grad, float32 and float64.
 
 from __future__ import annotations
 
+import abc
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -62,6 +63,19 @@ class UnitJumps(NamedTuple):
     g: jnp.ndarray
 
 
+def minv_jt(M, J):
+    """``M^-1 J^T`` (..., n, 3) by a linear solve (``M`` is symmetric positive definite)."""
+    return jnp.linalg.solve(M, jnp.swapaxes(J, -1, -2))
+
+
+def regularised(A, reg):
+    """``A + lam I`` with ``lam = reg trace(A) / 3 + tiny`` (``A`` (..., 3, 3), the module docstring's)."""
+    dtype = A.dtype
+    tr = jnp.trace(A, axis1=-2, axis2=-1)
+    lam = jnp.asarray(reg, dtype) * tr / 3.0 + tiny_floor(dtype)
+    return A + lam[..., None, None] * jnp.broadcast_to(jnp.eye(3, dtype=dtype), A.shape)
+
+
 def _operands(M, J, normal, reg):
     """Broadcast ``M`` (..., n, n), ``J`` (..., 3, n), ``n̂`` (..., 3); return them with ``M^-1 J^T`` and ``A + lam I``."""
     n = M.shape[-1]
@@ -69,25 +83,22 @@ def _operands(M, J, normal, reg):
     M = jnp.broadcast_to(M, lead + (n, n))
     J = jnp.broadcast_to(J, lead + (3, n))
     nvec = jnp.broadcast_to(normal, lead + (3,))
-    MiJt = jnp.linalg.solve(M, jnp.swapaxes(J, -1, -2))  # (..., n, 3)
-    A = J @ MiJt
-    tr = jnp.trace(A, axis1=-2, axis2=-1)
-    lam = jnp.asarray(reg, A.dtype) * tr / 3.0 + tiny_floor(A.dtype)
-    Ar = A + lam[..., None, None] * jnp.broadcast_to(jnp.eye(3, dtype=A.dtype), A.shape)
-    return M, J, nvec, MiJt, Ar
+    MiJt = minv_jt(M, J)  # (..., n, 3)
+    return M, J, nvec, MiJt, regularised(J @ MiJt, reg)
 
 
 def _safe_norm(x, axis):
     return jnp.sqrt(jnp.sum(x * x, axis=axis) + tiny_floor(x.dtype) ** 2)
 
 
-class ContactModel:
+class ContactModel(abc.ABC):
     """The interface: ``unit_jumps(M, J, normal, reg) -> UnitJumps``; ``exact`` when the spreads are zero."""
 
     exact = True
 
+    @abc.abstractmethod
     def unit_jumps(self, M, J, normal, reg) -> UnitJumps:
-        raise NotImplementedError
+        """The model's ``UnitJumps`` for ``M`` (..., n, n), ``J`` (..., 3, n), ``normal`` (..., 3), ``reg``."""
 
 
 class PaperContact(ContactModel):
