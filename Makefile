@@ -1,12 +1,13 @@
 # Two commands do everything on a fresh machine (Python 3.11 with venv):
 #   make demo   create/refresh .venv, install everything, run the main job
 #   make test   create/refresh .venv, install everything, lint (ruff check, ruff format --check), run the suite
+#               (CI runs exactly this); make test-extended: the end-to-end tier it leaves out; make test-all: both
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench joint-space venv clean
+.PHONY: demo test test-extended test-all bench joint-space venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -22,11 +23,21 @@ demo: $(STAMP)
 	$(PY) -m jaxlimits.training.cli main --out results/main
 
 # two pytest-xdist workers (the CI machine has 2 cores; XLA's CPU work is mostly single-threaded),
-# whole files per worker, the slowest files first (tests/conftest.py)
+# whole files per worker, the slowest files first (tests/conftest.py); the `extended` tier (end-to-end
+# trainings on tiny budgets, ~8 min of CPU) is left out of `make test` (CI) and run by `make test-extended`
+PYTEST := $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 test: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
-	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	$(PYTEST) -m "not extended"
+
+test-extended: $(STAMP)
+	$(PYTEST) -m extended
+
+test-all: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+	$(PYTEST)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_bounds.py

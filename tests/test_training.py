@@ -215,11 +215,17 @@ def _cli(*args, timeout=900):
     return proc
 
 
-def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path, monkeypatch):
-    """``jaxlimits main --task reach`` (tiny config) trains both shields, evaluates, plots; ``evaluate --run``
-    reloads. (The contact task's half of the main job: tests/test_contact_task.py.)"""
-    out = tmp_path / "main"
-    proc = _cli("main", "--task", "reach", "--config", "tiny", "--out", str(out))
+@pytest.fixture(scope="module")
+def main_job(tmp_path_factory):
+    """``jaxlimits main --task reach --config tiny``: its output folder and the completed process."""
+    out = tmp_path_factory.mktemp("main_job") / "main"
+    return out, _cli("main", "--task", "reach", "--config", "tiny", "--out", str(out))
+
+
+def test_main_job_trains_and_evaluates_on_a_tiny_budget(main_job, monkeypatch):
+    """``jaxlimits main --task reach`` (tiny config) trains both shields, evaluates, plots; the checkpoint reloads.
+    (The contact task's half of the main job: tests/test_contact_task.py.)"""
+    out, proc = main_job
     assert "| reach | viability |" in proc.stdout and "| reach | none |" in proc.stdout
     assert "contact" not in json.loads((out / "results.json").read_text())
     results = json.loads((out / "results.json").read_text())
@@ -241,14 +247,21 @@ def test_main_job_train_evaluate_reload_on_a_tiny_budget(tmp_path, monkeypatch):
     from conftest import NOTEBOOK_DIR, run_notebook
 
     run_notebook(NOTEBOOK_DIR / "06_training.ipynb", monkeypatch, JAXLIMITS_RESULTS=str(out))
-
-    # reload the checkpoint: same parameters, and the evaluation from the CLI reproduces the main job's
-    from jaxlimits.training import brax_ppo
-
-    cfg, policy, params = brax_ppo.load_policy(out / "runs" / "viability")
+    # the checkpoint reloads: the configuration it was trained with, finite parameters
+    cfg, _, params = brax_ppo.load_policy(out / "runs" / "viability")
     assert cfg.shield == "viability" and cfg.env == "planar_reach"
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(params))
-    proc = _cli(
+
+
+@pytest.mark.extended  # one more process tracing the evaluation (~30 s); the reload itself: the test above
+def test_evaluate_cli_reproduces_the_main_jobs_evaluation(main_job, tmp_path):
+    """``jaxlimits evaluate --run`` on the main job's checkpoint reproduces the main job's evaluation."""
+    from jaxlimits.training import brax_ppo
+
+    out, _ = main_job
+    vi = json.loads((out / "results.json").read_text())["shields"]["viability"]
+    cfg, _, _ = brax_ppo.load_policy(out / "runs" / "viability")
+    _cli(
         "evaluate",
         "--run",
         str(out / "runs" / "viability"),
