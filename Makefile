@@ -1,7 +1,7 @@
 # Two commands do everything on a fresh machine (Python 3.11 with venv):
 #   make demo   create/refresh .venv, install everything, run the main job
 #   make test   create/refresh .venv, install everything, lint (ruff check, ruff format --check), run the suite
-#               (CI runs exactly this); make test-extended: the end-to-end tier it leaves out; make test-all: both
+#               (CI runs exactly this); make test-extended: the few checks it leaves out; make test-all: both
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -23,8 +23,8 @@ demo: $(STAMP)
 	$(PY) -m jaxlimits.training.cli main --out results/main
 
 # two pytest-xdist workers (the CI machine has 2 cores; XLA's CPU work is mostly single-threaded),
-# whole files per worker, the slowest files first (tests/conftest.py); the `extended` tier (end-to-end
-# trainings on tiny budgets, ~8 min of CPU) is left out of `make test` (CI) and run by `make test-extended`
+# whole files per worker, the slowest files first (tests/conftest.py); the `extended` tier (checks the
+# suite or the campaign already covers, ~70 s of CPU) is left out of `make test` (CI), run by `make test-extended`
 PYTEST := $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 test: $(STAMP)
 	$(PY) -m ruff check .

@@ -93,7 +93,6 @@ def test_contact_configs_are_checked_eagerly():
         config.from_dict({**base, "impact": "yes"})
 
 
-@pytest.mark.extended  # the tally, the capped env and the table: the other tests here
 def test_contact_job_trains_and_counts_strikes_on_a_tiny_budget(tmp_path):
     """The main job's contact task on the tiny config, one variant (the job trains both; the uncapped one here:
     one MJX training compile less in the suite): a row in the one table, the training tally over every

@@ -64,7 +64,6 @@ def test_the_shipped_config_builds_it_and_the_ik_reference_reaches_inside_the_li
         assert row[f"violations/{k}"] == 0, (k, row)
 
 
-@pytest.mark.extended  # the env and its IK reference: the tests above; PPO through a shield: test_training.py's main job
 def test_trains_on_a_tiny_budget_with_zero_violations(tmp_path):
     """The Panda reach's config end to end on a tiny budget (Brax PPO through the shield, reload, evaluate):
     every training and evaluation env-step counted, 0 position, velocity and torque violations."""

@@ -31,7 +31,7 @@ def test_sb3_reacher_viability_trains_and_never_violates():
     assert r["train_violations"]["max_position_excess"] == r["train_violations"]["max_velocity_excess"] == 0.0
 
 
-@pytest.mark.extended  # the shielded reacher: tests/test_brax_shield.py; PPO on a third-party env: the SB3 test above
+@pytest.mark.slow
 def test_brax_reacher_viability_trains_and_never_violates():
     # the smallest that runs: one epoch of 8 envs x 2 minibatches x 5 steps; nearly all of the ~2 min
     # is XLA compiling the shielded MJX step twice (the training unroll and the evaluation unroll)

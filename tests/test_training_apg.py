@@ -11,12 +11,10 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from jaxlimits.training import config
 
 
-@pytest.mark.extended  # the shield derivative: tests/test_envs_actions.py
 def test_apg_trains_through_the_shield_and_reloads(tmp_path):
     """Brax APG (gradients through MJX and the shield) on a tiny budget: counted, zero violations, reloadable."""
     from jaxlimits.training import algos, brax_apg
