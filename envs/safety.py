@@ -99,10 +99,13 @@ class SafetyWrapper(Wrapper):
       impact: ``None`` (off: behaviour unchanged), ``True`` (the env's ``impact`` spec) or a dict
         overriding any of ``c_range``, ``dt_impact``, ``tau_imp_max`` (n,) [N m], ``margin`` (the
         cap is scaled by it, default 1.0), ``reg``, ``contact`` (a ``jaxlimits.impact.ContactModel``;
-        the env's, ``CoulombContact(friction)`` for ``WallStrike``) (see ``jaxlimits.impact``). Needs an env with
+        the env's, ``CoulombContact(friction)`` for ``WallStrike``), ``anticipate`` (default ``False``: the cap
+        on the end-of-step normal speed; ``True``: on the largest normal speed any joints braking toward rest
+        can leave, ``speed_cap_halfspace(..., box=)``, and the cap computed with rest inside each joint's
+        pre-impact velocity range) (see ``jaxlimits.impact``). Needs an env with
         ``impact_terms(q, v) -> (M, J, normal)`` and an ``impact`` spec (``WallStrike``).
 
-    Attributes: ``name`` (``method``, ``+torque_box``/``+impact`` when on; the key
+    Attributes: ``name`` (``method``, ``+torque_box``/``+impact``/``+impact+anticipate`` when on; the key
     ``adversarial_rollout`` reports under).
     """
 
@@ -130,7 +133,8 @@ class SafetyWrapper(Wrapper):
             raise ValueError(f"torque_box_margin must be in (0, 1], got {torque_box_margin}")
         self.torque_box_margin = float(torque_box_margin)
         self.impact = self._impact_options(env, impact)
-        self.name = method + ("+torque_box" if self.torque_box else "") + ("+impact" if self.impact else "")
+        impact_name = ("+impact" + ("+anticipate" if self.impact["anticipate"] else "")) if self.impact else ""
+        self.name = method + ("+torque_box" if self.torque_box else "") + impact_name
         self.limits = env.limits
         self.dt_factor = float(dt_factor)
         substeps = env.frame_skip * self.dt_factor
@@ -160,6 +164,7 @@ class SafetyWrapper(Wrapper):
             "margin": 1.0,
             "reg": _impact.DEFAULT_REG,
             "contact": env.impact.contact,
+            "anticipate": False,
         }
         if impact is not True:
             unknown = set(impact) - set(opts)
@@ -172,6 +177,8 @@ class SafetyWrapper(Wrapper):
             raise ValueError(f"impact: tau_imp_max must be finite and > 0, got {tau.tolist()}")
         opts["tau_imp_max"] = tau
         _impact.check_contact(opts["contact"])
+        if not isinstance(opts["anticipate"], bool):
+            raise ValueError(f"impact: anticipate must be True or False, got {opts['anticipate']!r}")
         if not (float(opts["dt_impact"]) > 0 and 0 < float(opts["margin"]) <= 1.0):
             raise ValueError(
                 f"impact: need dt_impact > 0 and 0 < margin <= 1, got {opts['dt_impact']}, {opts['margin']}"
@@ -199,6 +206,8 @@ class SafetyWrapper(Wrapper):
         # violated at w = 0 and cap the speed at 0 whenever a joint runs near v_max
         lo = jnp.maximum(v + dt * lower - reach, -v_max).reshape((-1, n))
         hi = jnp.minimum(v + dt * upper + reach, v_max).reshape((-1, n))
+        if o["anticipate"]:  # a joint braked toward rest later approaches at any speed between now and rest
+            lo, hi = jnp.minimum(lo, 0.0), jnp.maximum(hi, 0.0)
         qf, vf = q.reshape((-1, n)), v.reshape((-1, n))
         M, J, nrm = jax.vmap(self.env.impact_terms)(qf, vf)
         cap = _impact.impact_speed_cap(
@@ -217,7 +226,12 @@ class SafetyWrapper(Wrapper):
             contact=o["contact"],
         ).cap
         cap = cap * jnp.float32(o["margin"])
-        G, h = _impact.speed_cap_halfspace(M, J, nrm, vf, cap, dt)
+        box = None
+        if o["anticipate"]:  # finite: the accelerations that keep the velocity within v_max (all, for the bounds)
+            keep_lo, keep_hi = (-v_max - v) / dt, (v_max - v) / dt
+            a_lo = jnp.clip(lower, keep_lo, keep_hi).reshape((-1, n))
+            box = (a_lo, jnp.maximum(jnp.clip(upper, keep_lo, keep_hi).reshape((-1, n)), a_lo))
+        G, h = _impact.speed_cap_halfspace(M, J, nrm, vf, cap, dt, box=box)
         u = -_impact.impact_jump(M, J, nrm, vf, 0.0, 1.0, o["reg"]).dq_dw  # u = M^-1 J^T M_eq n̂
         return G.reshape(lead + (1, n)), h.reshape(lead + (1,)), cap.reshape(lead), u.reshape(lead + (n,))
 

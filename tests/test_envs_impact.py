@@ -163,3 +163,43 @@ def test_shield_cap_covers_the_next_steps_velocities():
     np.testing.assert_allclose(cap, widened, rtol=1e-6)
     assert np.all(cap <= step_only * (1 + 1e-6)) and np.any(cap < 0.95 * step_only)
     assert np.all(unclipped <= cap * (1 + 1e-6)) and np.sum((unclipped == 0.0) & (cap > 0.05)) >= 3
+
+
+def test_anticipating_cap_holds_after_any_joints_brake():
+    """``impact={"anticipate": True}``: at random moving states and random commands the safe acceleration leaves
+    ``sum_i max(0, g_i v+_i) <= cap`` (g = J^T n̂) wherever the box meets the row, so no joint braking toward
+    rest later can raise the normal speed over the cap; the one-step cap's decisions break that at some of
+    the same states (the cancellation the campaign's strikes over the bound came from). Bad values raise."""
+    env = make_planar_wall_strike()
+    plain = SafetyWrapper(env, "viability", impact=True)
+    anti = SafetyWrapper(env, "viability", impact={"anticipate": True})
+    assert anti.name == "viability+impact+anticipate" and plain.name == "viability+impact"
+    with pytest.raises(ValueError, match="anticipate"):
+        SafetyWrapper(env, "viability", impact={"anticipate": 1})
+    keys = jax.random.split(jax.random.PRNGKey(4), 256)
+    states = jax.vmap(env.reset)(keys)
+    v_max = jnp.asarray(env.limits.v_max, jnp.float32)[None]
+    v = jax.random.uniform(jax.random.PRNGKey(5), (256, env.n), jnp.float32, -0.9, 0.9) * v_max
+    states = states.replace(pipeline_state=states.pipeline_state.replace(qvel=v))
+    a_des = jax.random.uniform(jax.random.PRNGKey(6), (256, env.n), jnp.float32, -1.0, 1.0) * (5 * v_max)
+
+    def braked_speed(w):
+        @jax.jit
+        def run(states, a_des):
+            a, _, extra = jax.vmap(w._shield)(states, a_des)
+            q, vv = states.pipeline_state.qpos, states.pipeline_state.qvel
+            _, J, nrm = jax.vmap(env.impact_terms)(q, vv)
+            g = jnp.einsum("bin,bi->bn", J[:, :3], nrm)
+            x = g * (vv + jnp.float32(env.dt) * a)
+            return jnp.sum(jnp.maximum(x, 0.0), -1), jnp.sum(x, -1), extra["impact_cap"], extra["impact_infeasible"]
+
+        return (np.asarray(o) for o in run(states, a_des))
+
+    w_plus, w, cap, infeasible = braked_speed(anti)
+    ok = infeasible == 0
+    assert ok.sum() >= 64, ok.sum()  # random states: many start with sum_i max(0, g_i v_i) over the cap
+    assert np.all(w_plus[ok] <= cap[ok] * (1 + 1e-4) + 1e-5), np.max(w_plus[ok] - cap[ok])
+    assert np.all(w[ok] <= cap[ok] * (1 + 1e-4) + 1e-5)
+    w_plus_p, _, cap_p, infeasible_p = braked_speed(plain)
+    assert np.all(cap <= cap_p * (1 + 1e-6))  # rest inside the pre-impact range: never a larger cap
+    assert np.sum((infeasible_p == 0) & (w_plus_p > cap_p * 1.05)) >= 5

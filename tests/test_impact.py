@@ -459,3 +459,72 @@ def test_contact_model_errors():
         np.asarray(jl.impact_jump(M, J, nrm, v, C, DTI).dq),
         np.asarray(jl.impact_jump(M, J, nrm, v, C, DTI, contact=ji.PaperContact()).dq),
     )
+
+
+# ---- the braking-robust cap row (speed_cap_halfspace(..., box=)) -------------------------------------------------
+def _braking_case(seed, batch=64):
+    M, J, nrm, q, v = problem(seed, batch=batch)
+    rng = np.random.default_rng(seed + 1)
+    lower = rng.uniform(-20.0, 5.0, size=(batch, N))
+    upper = lower + rng.uniform(0.0, 25.0, size=(batch, N))
+    upper[:, 0] = lower[:, 0]  # a pinned joint (lower == upper): its term is a constant
+    return M, J, nrm, v, lower, upper
+
+
+def test_braking_row_implies_the_braked_speeds_and_meets_the_box_when_they_can(x64):
+    """Brute force over the box: every acceleration the row admits leaves sum_i max(0, g_i v+_i) <= cap, so
+    every velocity between the end-of-step one and rest (joints braked in any subset) approaches at most at the
+    cap, and the one-step row holds too; at the box's corners the row is the exact constraint (tight); its minimum
+    over the box equals the exact constraint's (the same states are infeasible); where every joint's term stays
+    >= 0 on the box it is the one-step row."""
+    M, J, nrm, v, lower, upper = _braking_case(900)
+    cap = 0.4
+    G, h = ji.speed_cap_halfspace(M, J, nrm, v, cap, DT, box=(lower, upper))
+    G, h = np.asarray(G)[:, 0], np.asarray(h)[:, 0]
+    g = np.einsum("bin,bi->bn", J, nrm)
+    rng = np.random.default_rng(3)
+    admitted = 0
+    for b in range(len(v)):
+        a = rng.uniform(lower[b], upper[b], size=(4000, N))
+        a[:64] = np.where(rng.random((64, N)) < 0.5, lower[b], upper[b])  # corners
+        # the chords touch max(0, x_i) at both ends of x_i's range: exact at the box's corners (tight, not just safe)
+        xc = g[b] * (v[b] + DT * a[:64])
+        np.testing.assert_allclose(a[:64] @ G[b] - h[b], np.maximum(xc, 0.0).sum(-1) - cap, atol=1e-9)
+        ok = a @ G[b] <= h[b]
+        x = g[b] * (v[b] + DT * a[ok])
+        assert np.all(np.maximum(x, 0.0).sum(-1) <= cap + 1e-9)
+        assert np.all(x.sum(-1) <= cap + 1e-9)
+        # braking any subset of joints to rest (or part way) keeps it: sampled scalings in [0, 1] per joint
+        s = rng.random(x.shape)
+        assert np.all((s * x).sum(-1) <= cap + 1e-9)
+        admitted += int(ok.sum())
+        x_lo = np.minimum(g[b] * (v[b] + DT * lower[b]), g[b] * (v[b] + DT * upper[b]))
+        row_min = np.sum(np.where(G[b] > 0, lower[b], upper[b]) * G[b]) - h[b]
+        assert row_min == pytest.approx(np.maximum(x_lo, 0.0).sum() - cap, abs=1e-9)
+    assert admitted > 10_000  # not vacuous
+    # all terms positive on the box: the one-step row
+    v_pos = np.abs(v) * np.sign(g) + 3.0 * np.sign(g)
+    lo_s, hi_s = -np.ones_like(v), np.ones_like(v)
+    G1, h1 = ji.speed_cap_halfspace(M, J, nrm, v_pos, cap, DT)
+    G2, h2 = ji.speed_cap_halfspace(M, J, nrm, v_pos, cap, DT, box=(lo_s, hi_s))
+    np.testing.assert_allclose(np.asarray(G2), np.asarray(G1), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(h2), np.asarray(h1), rtol=1e-12, atol=1e-12)
+
+
+def test_braking_row_jit_vmap_dtype_and_gradients(dtype):
+    M, J, nrm, v, lower, upper = _braking_case(901, batch=8)
+    args = [jnp.asarray(x, dtype) for x in (M, J, nrm, v, lower, upper)]
+
+    def f(M, J, n, v, lo, hi):
+        return ji.speed_cap_halfspace(M, J, n, v, 0.3, DT, box=(lo, hi))
+
+    G, h = f(*args)
+    Gj, hj = jax.jit(f)(*args)
+    Gv, hv = jax.jit(jax.vmap(f))(*args)
+    assert G.shape == (8, 1, N) and h.shape == (8, 1) and G.dtype == dtype and h.dtype == dtype
+    tol = 1e-12 if dtype == np.float64 else 1e-5
+    for Go, ho in ((Gj, hj), (Gv, hv)):
+        np.testing.assert_allclose(np.asarray(Go), np.asarray(G), rtol=tol, atol=tol)
+        np.testing.assert_allclose(np.asarray(ho), np.asarray(h), rtol=tol, atol=tol)
+    grad = jax.grad(lambda v: jnp.sum(f(args[0], args[1], args[2], v, args[4], args[5])[1]))(args[3])
+    assert np.all(np.isfinite(np.asarray(grad)))

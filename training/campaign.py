@@ -133,7 +133,7 @@ def _arm(env_name: str):
             make_base_env(env_name),
             method,
             torque_box="torque_box" in extras,
-            impact=True if "impact" in extras else None,
+            impact=({"anticipate": True} if "anticipate" in extras else True) if "impact" in extras else None,
         )
 
     return make
@@ -180,7 +180,9 @@ _SHIELD_MEASURES = dict(measured=("position", "velocity", "torque"), torque_clai
 TARGETS = {
     "planar arm": Target("planar arm", _arm("planar_reach"), ARM_SHIELDS),
     "Panda (torque)": Target("Panda (torque)", _arm("panda_reach"), ARM_SHIELDS),
-    "planar wall": Target("planar wall", _arm("planar_wall"), ("viability+impact", "viability", "none")),
+    "planar wall": Target(
+        "planar wall", _arm("planar_wall"), ("viability+impact", "viability+impact+anticipate", "viability", "none")
+    ),
     "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES),
     "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), **_SHIELD_MEASURES),
     "brax reacher": Target(

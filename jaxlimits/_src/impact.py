@@ -312,9 +312,38 @@ def impact_constraints(M, J, normal, q, v, limits, tau_imp_max, dt, c_max, dt_im
     return jnp.concatenate([G_up, G_dn], axis=-2), jnp.concatenate([h_up, h_dn], axis=-1)
 
 
-def speed_cap_halfspace(M, J, normal, v, cap, dt):
-    """The cap as one halfspace in ``a``: ``w(a) = g . (v + a dt) <= cap``; returns ``(G (..., 1, n), h (..., 1))``."""
+def speed_cap_halfspace(M, J, normal, v, cap, dt, box=None):
+    """The cap as one halfspace in ``a``; returns ``(G (..., 1, n), h (..., 1))``.
+
+    ``box=None``: the contact-normal speed at the end of the step, ``w(a) = g . (v + a dt) <= cap``, with
+    ``g = J^T n̂`` (``J`` the linear rows; Wang & Kheddar (17) holds for ``w <= cap``).
+
+    ``box=(lower, upper)`` (``(..., n)`` [rad/s^2], the step's acceleration bounds, finite): the cap also holds after
+    any joints brake toward rest, ``w_+(a) = sum_i max(0, x_i(a)) <= cap`` with ``x_i = g_i (v_i + a_i dt)``, the
+    largest normal speed the end-of-step velocities can show when any subset of joints slows down (for this
+    ``J``). The acceleration bounds only ever force a joint toward rest (braking before a position or
+    velocity limit), so a joint whose motion points away from the contact and cancels the others cannot,
+    by braking later, push ``w`` over the cap: the one-step row allows that cancellation and then meets a box
+    that no longer reaches its halfspace (measured on the planar wall: every strike over the bound under
+    random walks followed 8+ such steps). Each ``max(0, x_i)`` is replaced by its chord over ``x_i``'s range
+    on the box (``max(0, .)`` is convex, so the chord lies above it): one row that implies ``w_+ <= cap``
+    and ``w <= cap``, and meets the box exactly when ``w_+ <= cap`` can be met (both minima over the box are
+    ``sum_i max(0, min_box x_i)``).
+    """
     M, J, normal, v, cap = _promote(M, J, normal, v, cap)
     g = jnp.einsum("...in,...i->...n", _lin(J), jnp.broadcast_to(normal, J.shape[:-2] + (3,)))
     dt = jnp.asarray(dt, g.dtype)
-    return (dt * g)[..., None, :], (cap - jnp.sum(g * v, axis=-1))[..., None]
+    if box is None:
+        return (dt * g)[..., None, :], (cap - jnp.sum(g * v, axis=-1))[..., None]
+    lower, upper = (jnp.asarray(b, g.dtype) for b in box)
+    x_l, x_u = g * (v + lower * dt), g * (v + upper * dt)
+    x_lo, x_hi = jnp.minimum(x_l, x_u), jnp.maximum(x_l, x_u)
+    p_lo, p_hi = jnp.maximum(x_lo, 0.0), jnp.maximum(x_hi, 0.0)
+    width = x_hi - x_lo
+    wide = width > 0
+    # the chord's slope over [x_lo, x_hi]; a point range (g_i = 0 or lower_i = upper_i) keeps the constant
+    slope = jnp.where(wide, (p_hi - p_lo) / jnp.where(wide, width, 1.0), 0.0)
+    # sum_i p_lo_i + slope_i (x_i(a) - x_lo_i) <= cap, with x_i(a) = g_i v_i + g_i dt a_i
+    G = slope * g * dt
+    h = cap - jnp.sum(p_lo + slope * (g * v - x_lo), axis=-1)
+    return G[..., None, :], h[..., None]
