@@ -18,7 +18,7 @@ do reach the limits (a campaign whose unshielded rows were clean would prove not
 
 Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
-cap, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher`` and ``pusher`` under
+cap, the same cap anticipating braking, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher`` and ``pusher`` under
 ``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none), whose metrics ``EvaluatorMetrics``
 renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env; and Gymnasium's
 ``Reacher-v5`` and ``Pusher-v5`` under ``JointLimitShieldWrapper`` (viability, none; ``campaign_gym``), the same
