@@ -1,7 +1,7 @@
 """MJX adversarial rollouts: the viability shield keeps position and velocity inside, the others do not.
 
 >= 1e5 env-steps per shield on the planar arm (256 envs x 400 steps), >= 2.5e4 on the Panda (64 envs: its MJX
-step is ~10x the planar one; the campaign, docs/campaign.md, runs it 1e6 per policy class), one jitted lax.scan
+step is ~10x the planar one; marked ``extended``: the campaign, docs/campaign.md, runs it 1e6 per policy class), one jitted lax.scan
 per arm, all shields in the same compiled function. Realised-vs-commanded acceleration and the state's distance from
 the semi-implicit model used by the bounds are measured in the same runs.
 """
