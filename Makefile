@@ -7,7 +7,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-extended test-all bench joint-space venv clean
+.PHONY: demo lint test test-extended test-all bench joint-space venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -26,17 +26,17 @@ demo: $(STAMP)
 # whole files per worker, the slowest files first (tests/conftest.py); the `extended` tier (checks the
 # suite or the campaign already covers, ~70 s of CPU) is left out of `make test` (CI), run by `make test-extended`
 PYTEST := $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
-test: $(STAMP)
+lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
+
+test: lint
 	$(PYTEST) -m "not extended"
 
 test-extended: $(STAMP)
 	$(PYTEST) -m extended
 
-test-all: $(STAMP)
-	$(PY) -m ruff check .
-	$(PY) -m ruff format --check .
+test-all: lint
 	$(PYTEST)
 
 bench: $(STAMP)
