@@ -21,6 +21,8 @@ _EXPORTS = {
     "Robot": "jaxlimits.envs.robot",
     "Reach": "jaxlimits.envs.reach",
     "make_servo_panda_reach": "jaxlimits.envs.reach",
+    "make_servo_panda_front_reach": "jaxlimits.envs.reach",
+    "ViolationMetrics": "jaxlimits.envs.violation_metrics",
     "make_ur5e_reach": "jaxlimits.envs.reach",
     "shield_rollout": "jaxlimits.envs.adversarial",
     "adversarial_rollout": "jaxlimits.envs.adversarial",

@@ -69,6 +69,20 @@ def _numeric(mjm: mujoco.MjModel, name: str, n: int | None = None) -> np.ndarray
     return out
 
 
+def damped_ls_step(J, err):
+    """Damped least-squares joint step ``J^T (J J^T + lam^2 I)^-1 err`` [rad], ``(n,)``, ``lam = IK_DAMPING``.
+
+    ``J`` ``(3, n)`` [m/rad] the end-effector position Jacobian, ``err`` ``(3,)`` [m] the target minus the
+    end effector. Finite and bounded (``<= |err| / (2 lam)``) at singularities."""
+    return J.T @ jnp.linalg.solve(J @ J.T + IK_DAMPING**2 * jnp.eye(3, dtype=J.dtype), err)
+
+
+def reach_reward(dist, precision_reward: float):
+    """A reach's reward ``-d + w (1 - tanh(d / PRECISION_SCALE))`` for end-effector distance ``d`` [m]
+    and precision weight ``w >= 0`` (``w = 0``: plain ``-d``)."""
+    return -dist + precision_reward * (1.0 - jnp.tanh(dist / PRECISION_SCALE))
+
+
 def load_arm(xml_path) -> mujoco.MjModel:
     """Load an arm MJCF and check the conventions the envs rely on (hinges; motor i drives joint i)."""
     mjm = mujoco.MjModel.from_xml_path(str(xml_path))
@@ -361,7 +375,7 @@ class ArmReach(Env):
         zero = jnp.zeros((), jnp.float32)
         info = dict(state.info)
         info["a_prev"] = a
-        reward = -dist + self.precision_reward * (1.0 - jnp.tanh(dist / PRECISION_SCALE))
+        reward = reach_reward(dist, self.precision_reward)
         return state.replace(
             pipeline_state=d, obs=self._obs(d, target), reward=reward, done=zero, metrics=metrics, info=info
         )
@@ -410,8 +424,7 @@ class ArmReach(Env):
         ``d`` must have its position stage computed (``mjx.fwd_position``); ``err`` ``(3,)`` [m].
         ``lam = IK_DAMPING`` keeps it finite and bounded (``<= |err| / (2 lam)``) at singularities.
         """
-        J = self.ee_jacobian_at(d)  # (3, n)
-        return J.T @ jnp.linalg.solve(J @ J.T + IK_DAMPING**2 * jnp.eye(3, dtype=J.dtype), err)
+        return damped_ls_step(self.ee_jacobian_at(d), err)
 
     # ---- MJX-backed dynamics for jaxlimits.torque ----------------------------------------------
     @_mjx_broadcasting

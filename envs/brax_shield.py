@@ -180,6 +180,11 @@ class JointLimitShield(Wrapper):
         base._shielded_by = self
         base.pipeline_step = self._shielded_pipeline_step  # the one thing taken over
 
+    @property
+    def limits(self):
+        """The shielded joints' ``jl.JointLimits`` (``robot.limits``), as the project's own envs name them."""
+        return self.robot.limits
+
     # ---- the physics call --------------------------------------------------------------------
     @_mjx_broadcasting
     def _shielded_pipeline_step(self, pipeline_state, ctrl):

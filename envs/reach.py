@@ -3,12 +3,20 @@
     env = Reach("envs/assets/panda_servo.xml")          # the shipped position-servo Panda
     env = JointLimitShield(env)                          # v_max/j_max from its custom numerics
 
-The task knows nothing of the limits: the action ``[-1, 1]^nu`` is mapped affinely onto each
-actuator's ``ctrlrange`` (for a position servo, a target joint position inside the joint range, as
-in MuJoCo Playground; for a motor, a torque) and held over ``n_frames`` substeps by
-``pipeline_step``, where a ``JointLimitShield`` takes over. Reward ``-|ee - target|`` [m]; targets are
-end-effector positions of random configurations inside the limits (reachable); episodes do not
-terminate (truncate them with Brax's ``EpisodeWrapper``).
+The task knows nothing of the limits. The action ``[-1, 1]^nu`` means (``action``):
+
+* ``"ctrl"`` (default): mapped affinely onto each actuator's ``ctrlrange`` (for a position servo, a
+  target joint position inside the joint range, as in MuJoCo Playground; for a motor, a torque);
+* ``"servo_offset"`` (position servos only): the servo's target is the joint's current position plus
+  ``action * forcerange / kp`` [rad or m], so ``|action| = 1`` asks the servo's whole force at rest and
+  the policy commands a direction of motion, not a place (``servo_offset_scale``).
+
+Either way ``ctrl`` is held over ``n_frames`` substeps by ``pipeline_step``, where a
+``JointLimitShield`` takes over. Reward ``-d`` (``d = |ee - target|`` [m]), plus
+``precision_reward * (1 - tanh(d / PRECISION_SCALE))`` if asked (``jaxlimits.envs.arm.reach_reward``,
+the same as ``ArmReach``'s). Starts: uniform in the joint ranges or Isaac Lab's ``home`` scaling;
+targets: end-effector positions of random configurations inside the limits (reachable) or uniform in a
+box. Episodes do not terminate (truncate them with Brax's ``EpisodeWrapper``).
 """
 
 from __future__ import annotations
@@ -27,19 +35,80 @@ with warnings.catch_warnings():
     from brax.envs.base import PipelineEnv, State
     from brax.io import mjcf
 
+from jaxlimits.envs.arm import PANDA_FRONT_BOX, _mjx_broadcasting, damped_ls_step, reach_reward
+
 ASSETS = pathlib.Path(__file__).parent / "assets"
+ACTIONS = ("ctrl", "servo_offset")
+STARTS = ("random", "home")
+TARGETS = ("reachable", "box")
+
+
+def servo_offset_scale(mjm: mujoco.MjModel) -> np.ndarray:
+    """``(nu,)`` [rad or m]: ``forcerange_hi / kp`` of every actuator, each a position servo on a joint
+    (``<position>``, or ``general`` with gain ``kp`` and bias ``(0, -kp, -kv)``) with a force range.
+
+    Raises ``ValueError`` naming the first actuator that is not one."""
+    out = np.empty(mjm.nu)
+    for i in range(mjm.nu):
+        name = mujoco.mj_id2name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, i) or f"#{i}"
+        kp = float(mjm.actuator_gainprm[i, 0])
+        servo = (
+            mjm.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT
+            and mjm.actuator_gaintype[i] == mujoco.mjtGain.mjGAIN_FIXED
+            and mjm.actuator_biastype[i] == mujoco.mjtBias.mjBIAS_AFFINE
+            and kp > 0
+            and mjm.actuator_biasprm[i, 0] == 0
+            and mjm.actuator_biasprm[i, 1] == -kp
+        )
+        if not servo:
+            raise ValueError(f"action='servo_offset' needs position servos; actuator {name!r} is not one")
+        if not mjm.actuator_forcelimited[i]:
+            raise ValueError(f"action='servo_offset' needs a forcerange; actuator {name!r} has none")
+        out[i] = float(mjm.actuator_forcerange[i, 1]) / kp
+    return out
 
 
 class Reach(PipelineEnv):
     """Reach over the robot in ``xml_path`` (every actuator needs a ``ctrlrange``; a site named ``ee_site``).
 
     Args:
-      xml_path: the robot's MJCF. n_frames: physics substeps per control step.
-      reset_margin: initial and target configurations are uniform in each limited joint's range shrunk
-        by this fraction at both ends (unlimited joints: in [-pi, pi]).
+      xml_path: the robot's MJCF (a fixed-base arm of hinge/slide joints). n_frames: physics substeps
+        per control step.
+      reset_margin: random configurations (starts, reachable targets) are uniform in each limited
+        joint's range shrunk by this fraction at both ends (unlimited joints: in [-pi, pi]).
+      action: ``"ctrl"`` or ``"servo_offset"`` (module docstring).
+      start: ``"random"`` (uniform, as above) or ``"home"`` (the keyframe ``home`` with every joint scaled
+        by ``U(home_scale)``, clipped to the shrunk ranges: Isaac Lab's ``reset_joints_by_scale``).
+      target: ``"reachable"`` (the ``ee`` position of a random configuration) or ``"box"`` (uniform in
+        ``target_box = (low, high)`` [m], world frame).
+      ik_observation: append the damped least-squares joint step toward the target (``n`` entries,
+        ``arm.damped_ls_step``), as ``ArmReach`` does.
+      precision_reward: weight of the precision term of the reward (``arm.reach_reward``), >= 0.
     """
 
-    def __init__(self, xml_path, ee_site: str = "ee", n_frames: int = 5, reset_margin: float = 0.1):
+    def __init__(
+        self,
+        xml_path,
+        ee_site: str = "ee",
+        n_frames: int = 5,
+        reset_margin: float = 0.1,
+        action: str = "ctrl",
+        start: str = "random",
+        home_scale=(0.5, 1.5),
+        target: str = "reachable",
+        target_box=None,
+        ik_observation: bool = False,
+        precision_reward: float = 0.0,
+    ):
+        for field, value, allowed in (
+            ("action", action, ACTIONS),
+            ("start", start, STARTS),
+            ("target", target, TARGETS),
+        ):
+            if value not in allowed:
+                raise ValueError(f"{field} must be one of {allowed}, got {value!r}")
+        if not (np.isfinite(precision_reward) and precision_reward >= 0):
+            raise ValueError(f"precision_reward must be a finite number >= 0, got {precision_reward!r}")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             sys = mjcf.load_model(mujoco.MjModel.from_xml_path(str(xml_path)))
@@ -61,6 +130,35 @@ class Reach(PipelineEnv):
         if mjm.nq != mjm.njnt or not np.all(hinge):
             raise ValueError(f"{xml_path}: Reach expects a fixed-base arm of hinge/slide joints only")
         self._q_lo, self._q_hi = jnp.asarray(q_lo, jnp.float32), jnp.asarray(q_hi, jnp.float32)
+        self.action_mode = action
+        if action == "servo_offset":
+            self._offset_scale = jnp.asarray(servo_offset_scale(mjm), jnp.float32)
+            self._servo_qadr = jnp.asarray(mjm.jnt_qposadr[mjm.actuator_trnid[:, 0]])
+        self.start_mode, self.target_mode = start, target
+        if start == "home":
+            key = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_KEY, "home")
+            if key < 0:
+                raise ValueError(f"{xml_path}: start='home' needs a keyframe named 'home'")
+            self._home = jnp.asarray(mjm.key_qpos[key], jnp.float32)
+            lo_s, hi_s = (float(x) for x in home_scale)
+            if not (np.isfinite(lo_s) and np.isfinite(hi_s) and lo_s <= hi_s):
+                raise ValueError(f"home_scale must be finite (low, high) with low <= high, got {home_scale!r}")
+            self._home_scale = (lo_s, hi_s)
+        if target == "box":
+            box = np.asarray(target_box, np.float64) if target_box is not None else None
+            if box is None or box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
+                raise ValueError(
+                    f"target='box' needs target_box = (low, high), two finite 3-vectors, got {target_box!r}"
+                )
+            self._box = jnp.asarray(box, jnp.float32)
+        self.ik_observation = bool(ik_observation)
+        self.precision_reward = float(precision_reward)
+        self._body = int(mjm.site_bodyid[self._site])
+
+    @property
+    def mj_model(self) -> mujoco.MjModel:
+        """The robot's ``MjModel`` (for reading and rendering)."""
+        return self.sys.mj_model
 
     def _ee(self, q):
         with jax.numpy_rank_promotion("allow"):
@@ -69,29 +167,63 @@ class Reach(PipelineEnv):
 
     def reset(self, rng: jax.Array) -> State:
         k_q, k_t = jax.random.split(rng)
-        q = jax.random.uniform(k_q, self._q_lo.shape, jnp.float32, self._q_lo, self._q_hi)
-        target = self._ee(jax.random.uniform(k_t, self._q_lo.shape, jnp.float32, self._q_lo, self._q_hi))
+        if self.start_mode == "home":
+            scale = jax.random.uniform(k_q, self._q_lo.shape, jnp.float32, *self._home_scale)
+            q = jnp.clip(self._home * scale, self._q_lo, self._q_hi)
+        else:
+            q = jax.random.uniform(k_q, self._q_lo.shape, jnp.float32, self._q_lo, self._q_hi)
+        if self.target_mode == "box":
+            target = jax.random.uniform(k_t, (3,), jnp.float32, self._box[0], self._box[1])
+        else:
+            target = self._ee(jax.random.uniform(k_t, self._q_lo.shape, jnp.float32, self._q_lo, self._q_hi))
         with jax.numpy_rank_promotion("allow"):
             ps = self.pipeline_init(q, jnp.zeros(self.sys.nv, jnp.float32))
         zero = jnp.zeros((), jnp.float32)
         dist = jnp.linalg.norm(ps.site_xpos[self._site] - target)
         return State(ps, self._obs(ps, target), -dist, zero, {"distance": dist}, {"target": target})
 
+    def ctrl(self, pipeline_state, action: jax.Array) -> jax.Array:
+        """The actuators' ``ctrl`` ``(nu,)`` for ``action`` ``(nu,)`` at ``pipeline_state`` (module docstring)."""
+        if self.action_mode == "servo_offset":
+            return pipeline_state.qpos[self._servo_qadr] + action * self._offset_scale
+        return self._ctrl_mid + action * self._ctrl_half
+
+    @_mjx_broadcasting
     def step(self, state: State, action: jax.Array) -> State:
-        ctrl = self._ctrl_mid + action * self._ctrl_half
-        ps = self.pipeline_step(state.pipeline_state, ctrl)
+        ps = self.pipeline_step(state.pipeline_state, self.ctrl(state.pipeline_state, action))
         target = state.info["target"]
         dist = jnp.linalg.norm(ps.site_xpos[self._site] - target)
         metrics = dict(state.metrics, distance=dist)
-        return state.replace(pipeline_state=ps, obs=self._obs(ps, target), reward=-dist, metrics=metrics)
+        reward = reach_reward(dist, self.precision_reward)
+        return state.replace(pipeline_state=ps, obs=self._obs(ps, target), reward=reward, metrics=metrics)
 
     def _obs(self, ps, target):
         ee = ps.site_xpos[self._site]
-        return jnp.concatenate([jnp.cos(ps.qpos), jnp.sin(ps.qpos), ps.qvel, ee, target - ee]).astype(jnp.float32)
+        parts = [jnp.cos(ps.qpos), jnp.sin(ps.qpos), ps.qvel, ee, target - ee]
+        if self.ik_observation:
+            with jax.numpy_rank_promotion("allow"):  # MJX's own code broadcasts
+                jacp, _ = mjx.jac(self.sys, ps, ee, self._body)
+            parts.append(damped_ls_step(jacp.T, target - ee))
+        return jnp.concatenate(parts).astype(jnp.float32)
 
 
 def make_servo_panda_reach(**kwargs) -> Reach:
     """Reach with the shipped position-servo Panda (``assets/panda_servo.xml``), 5 substeps of 2 ms."""
+    return Reach(ASSETS / "panda_servo.xml", **kwargs)
+
+
+def make_servo_panda_front_reach(**kwargs) -> Reach:
+    """Isaac Lab's ``Isaac-Reach-Franka-v0`` distribution (as ``arm.make_panda_front_reach``) on the
+    position-servo Panda: start at ``home`` scaled by ``U(0.5, 1.5)``, target uniform in
+    ``arm.PANDA_FRONT_BOX``; servo-offset actions and the IK observation by default."""
+    kwargs = {
+        "start": "home",
+        "target": "box",
+        "target_box": PANDA_FRONT_BOX,
+        "action": "servo_offset",
+        "ik_observation": True,
+        **kwargs,
+    }
     return Reach(ASSETS / "panda_servo.xml", **kwargs)
 
 

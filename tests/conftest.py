@@ -117,6 +117,7 @@ SLOWEST_FILES_FIRST = (  # by measured duration (a full run's per-test times, `m
     "test_campaign.py",
     "test_qp.py",
     "test_limit_contract.py",
+    "test_reach_task.py",
     "test_training_apg.py",
     "test_gym_shield.py",
     "test_panda_front_reach.py",

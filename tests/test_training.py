@@ -73,9 +73,12 @@ def test_override_replaces_fields_and_section_fields_and_validates():
 def test_config_choices_match_the_library():
     """The config module lists the choices without importing MuJoCo; they must stay the library's."""
     from jaxlimits.envs.actions import ACTION_MODES
+    from jaxlimits.envs.joint_shield import METHODS
+    from jaxlimits.envs.reach import ACTIONS
     from jaxlimits.envs.safety import SHIELD_GRADIENTS
 
-    assert config.SHIELD_GRADIENTS == SHIELD_GRADIENTS and config.ACTION_MODES == ACTION_MODES
+    assert config.SHIELD_GRADIENTS == SHIELD_GRADIENTS and config.ARM_ACTION_MODES == ACTION_MODES
+    assert config.SERVO_ACTION_MODES == ACTIONS and set(config.SERVO_SHIELDS) == set(METHODS)
 
 
 def test_apg_config_selects_the_shield_gradient():

@@ -41,7 +41,7 @@ with warnings.catch_warnings():
     from brax.training.agents.ppo import train as brax_ppo_train
 
 from jaxlimits.training import checkpoint, evaluate, tally
-from jaxlimits.training.config import CONTACT_ENVS, RunConfig, from_dict
+from jaxlimits.training.config import CONTACT_ENVS, SERVO_ENVS, RunConfig, from_dict
 
 
 def make_base_env(name: str, **kwargs):
@@ -61,21 +61,41 @@ def make_base_env(name: str, **kwargs):
 def make_env(
     name: str,
     shield: str,
-    action_mode: str = "acceleration",
+    action_mode: str | None = None,
     shield_gradient: str = "exact",
     impact: bool = False,
     **kwargs,
 ):
     """``SafetyWrapper(env(**kwargs), method=shield, gradient=shield_gradient, impact=impact)`` with the
     policy's actions meaning ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm
-    and the evaluator see. ``impact``: the impact-aware speed cap (envs with contacts)."""
+    and the evaluator see. ``impact``: the impact-aware speed cap (envs with contacts). A ``SERVO_ENVS``
+    name gets ``_servo_env`` instead (its actions are the actuators' own: ``action_mode`` ``"servo_offset"``
+    or ``"ctrl"``). ``action_mode=None``: ``"acceleration"``, for a ``SERVO_ENVS`` name ``"servo_offset"``."""
     from jaxlimits.envs import SafetyWrapper
     from jaxlimits.envs.actions import with_action_mode
 
+    if name in SERVO_ENVS:
+        return _servo_env(name, shield, action_mode or "servo_offset", **kwargs)
+    action_mode = action_mode or "acceleration"
     shielded = SafetyWrapper(
         make_base_env(name, **kwargs), method=shield, gradient=shield_gradient, impact=True if impact else None
     )
     return with_action_mode(shielded, action_mode)
+
+
+def _servo_env(name: str, shield: str, action_mode: str, **kwargs):
+    """``ViolationMetrics(JointLimitShield(Reach(action=action_mode, **kwargs), method=shield))`` for a
+    ``SERVO_ENVS`` name: the any-robot shield around the any-robot reach, its record under the metric
+    names the trainers and the evaluator read (``jaxlimits.envs.violation_metrics``)."""
+    from jaxlimits.envs import JointLimitShield
+    from jaxlimits.envs.reach import make_servo_panda_front_reach
+    from jaxlimits.envs.violation_metrics import ViolationMetrics
+
+    makers = {"servo_panda_front_reach": make_servo_panda_front_reach}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the torque-derived a_max's quantile notice
+        shielded = JointLimitShield(makers[name](action=action_mode, **kwargs), method=shield)
+    return ViolationMetrics(shielded)
 
 
 def env_from_config(cfg: RunConfig):

@@ -11,16 +11,22 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-ENVS = ("planar_reach", "panda_reach", "panda_front_reach", "planar_wall")
+ENVS = ("planar_reach", "panda_reach", "panda_front_reach", "planar_wall", "servo_panda_front_reach")
 CONTACT_ENVS = ("planar_wall",)  # envs with contacts: the impact-aware speed cap applies (``impact``)
+# envs over any robot (``jaxlimits.envs.reach.Reach`` inside ``JointLimitShield``): actions are the
+# actuators' own commands (``SERVO_ACTION_MODES``), the shield any of ``JointLimitShield``'s methods
+SERVO_ENVS = ("servo_panda_front_reach",)
 REACH_ENVS = tuple(e for e in ENVS if e not in CONTACT_ENVS)  # the reach tasks (success = final distance)
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
-ACTION_MODES = (
+ARM_ACTION_MODES = (
     "acceleration",
     "velocity",
     "task_space",
 )  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
+SERVO_ACTION_MODES = ("ctrl", "servo_offset")  # jaxlimits.envs.reach.ACTIONS
+ACTION_MODES = ARM_ACTION_MODES + SERVO_ACTION_MODES
+SERVO_SHIELDS = ("none", "naive", "viability", "jerk")  # jaxlimits.envs.joint_shield.METHODS
 SHIELD_GRADIENTS = ("exact", "straight_through", "exact_fixed_bounds")  # envs.safety.SHIELD_GRADIENTS
 
 
@@ -117,6 +123,14 @@ class RunConfig:
         for name in ("ik_observation", "impact"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"config field {name!r} must be true or false, got {getattr(self, name)!r}")
+        servo = self.env in SERVO_ENVS
+        for name, value, allowed in (
+            ("action_mode", self.action_mode, SERVO_ACTION_MODES if servo else ARM_ACTION_MODES),
+            ("shield", self.shield, SERVO_SHIELDS if servo else SHIELDS),
+            ("algo", self.algo, ("ppo",) if servo else ALGOS),
+        ):
+            if value not in allowed:
+                raise ValueError(f"config field {name!r} must be one of {allowed} for env {self.env!r}, got {value!r}")
         if self.impact and self.env not in CONTACT_ENVS:
             raise ValueError(f"config field 'impact' needs an env with contacts {CONTACT_ENVS}, got env {self.env!r}")
         if self.env in CONTACT_ENVS and (self.ik_observation or self.precision_reward):

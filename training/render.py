@@ -64,7 +64,7 @@ CAMERAS = {
     "planar_wall": ((0.25, 0.0, -0.45), 1.4, 90.0, -5.0),
     "panda_reach": ((0.25, 0.0, 0.4), 1.8, 135.0, -20.0),
 }
-CAMERAS["panda_front_reach"] = CAMERAS["panda_reach"]  # the same robot
+CAMERAS["panda_front_reach"] = CAMERAS["servo_panda_front_reach"] = CAMERAS["panda_reach"]  # the same robot
 WALL_RGBA = np.array([0.6, 0.55, 0.5, 1.0], np.float32)
 WALL_HALF_THICKNESS = 0.02  # [m], of the slab the wall is drawn as
 STRIP_ROW = 7  # [px] per joint in the limits strip
@@ -124,7 +124,7 @@ def rollout(env, policy, params, *, steps: int, action_repeat: int = 1, seed: in
     with jax.numpy_rank_promotion("allow"):  # brax's observation normaliser relies on rank promotion
         traj = jax.device_get(run(params, jax.random.PRNGKey(seed)))
     traj = {k: np.asarray(v, np.float64) for k, v in traj.items()}
-    lim = base.limits
+    lim = env.limits  # the wrappers pass it through: the arms' own, or the JointLimitShield's robot's
     return Rollout(
         label=label,
         mj_model=base.mj_model,

@@ -133,44 +133,16 @@ def sb3_reacher(shield: str, timesteps: int, seed: int = 0, *, n_envs: int = 4, 
 
 
 # --------------------------------------------------------------------------------------------- Brax
-def _violation_metrics_wrapper():
-    """``ViolationMetrics``, a Brax ``Wrapper`` over ``JointLimitShield`` giving each step's violations the
-    metric names of ``jaxlimits.training.tally``: ``count/<kind>`` (1.0 when the step's excess is positive)
-    and ``violation/<kind>`` (the excess) for every ``VIOLATION_KEYS`` kind (``acceleration``/``jerk``,
-    which ``JointLimitShield`` does not limit, are 0)."""
-    import jax.numpy as jnp
-    from brax.envs.base import Wrapper
-
-    from jaxlimits.envs.arm import VIOLATION_KEYS
-
-    def add(state):
-        viol = state.info["violation"]
-        metrics = dict(state.metrics)
-        for k in VIOLATION_KEYS:
-            x = viol.get(k, jnp.zeros((), jnp.float32))
-            metrics[f"count/{k}"] = (x > 0).astype(jnp.float32)
-            metrics[f"violation/{k}"] = x.astype(jnp.float32)
-        return state.replace(metrics=metrics)
-
-    class ViolationMetrics(Wrapper):
-        def reset(self, rng):
-            return add(self.env.reset(rng))
-
-        def step(self, state, action):
-            return add(self.env.step(state, action))
-
-    return ViolationMetrics
-
-
 def _brax_env(shield: str):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Brax's "not actively maintained" notice, mjx deprecations
         import brax.envs
 
         from jaxlimits.envs import JointLimitShield
+        from jaxlimits.envs.violation_metrics import ViolationMetrics
 
         env = JointLimitShield(brax.envs.get_environment("reacher", backend="mjx"), v_max=V_MAX, method=shield)
-    return _violation_metrics_wrapper()(env)
+    return ViolationMetrics(env)
 
 
 def brax_reacher(shield: str, timesteps: int, seed: int = 0, **ppo) -> dict:
