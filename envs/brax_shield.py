@@ -61,7 +61,7 @@ with warnings.catch_warnings():
 
 from jaxlimits.envs import nonfinite_guard
 from jaxlimits.envs.actuation import MjxActuation
-from jaxlimits.envs.arm import _mjx_broadcasting
+from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, Decision, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
@@ -186,7 +186,7 @@ class JointLimitShield(Wrapper):
         return self.robot.limits
 
     # ---- the physics call --------------------------------------------------------------------
-    @_mjx_broadcasting
+    @_mjx_tracing
     def _shielded_pipeline_step(self, pipeline_state, ctrl):
         if self._pending is None:
             raise RuntimeError("pipeline_step of a shielded env was called outside JointLimitShield.step")
@@ -250,7 +250,7 @@ class JointLimitShield(Wrapper):
         return _brax_state(self._base.sys, d_end)
 
     # ---- Brax Env interface -------------------------------------------------------------------
-    @_mjx_broadcasting
+    @_mjx_tracing
     def reset(self, rng: jax.Array) -> State:
         state = self.env.reset(rng)
         n = self.robot.n
@@ -262,7 +262,7 @@ class JointLimitShield(Wrapper):
         metrics.update({f"shield/{k}": zero for k in SHIELD_METRICS})
         return state.replace(info=info, metrics=metrics)
 
-    @_mjx_broadcasting
+    @_mjx_tracing
     def step(self, state: State, action: jax.Array) -> State:
         replaced = jnp.asarray(state.info.get(nonfinite_guard.FLAG, False), bool)
         self._pending, self._outputs = (state.info["shield_a_prev"], replaced), None

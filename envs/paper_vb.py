@@ -30,7 +30,7 @@ from mujoco import mjx
 from mujoco.mjx._src import support as _support  # jac_dot: MJX 3.17 has no public name for it
 
 import jaxlimits as jl
-from jaxlimits.envs.arm import _mjx_broadcasting, make_panda_reach
+from jaxlimits.envs.arm import _mjx_tracing, make_panda_reach
 from jaxlimits.envs.safety import SafetyWrapper
 
 ELBOW = 3  # joint4
@@ -52,7 +52,7 @@ def run(steps: int = 300, kp: float = 10.0, dt_factors=(1.0, 2.0)):
     shields = [SafetyWrapper(env, m, dt_factor=f) for m, f in cases]
     qr = jnp.asarray(q_ref, jnp.float32)
 
-    @_mjx_broadcasting
+    @_mjx_tracing
     def controller(dd):
         dd = mjx.fwd_velocity(env.sys, mjx.fwd_position(env.sys, dd))
         x = dd.site_xpos[env.ee_site]

@@ -35,7 +35,7 @@ with warnings.catch_warnings():
     from brax.envs.base import PipelineEnv, State
     from brax.io import mjcf
 
-from jaxlimits.envs.arm import PANDA_FRONT_BOX, _mjx_broadcasting, damped_ls_step, reach_reward
+from jaxlimits.envs.arm import PANDA_FRONT_BOX, _mjx_tracing, damped_ls_step, reach_reward
 
 ASSETS = pathlib.Path(__file__).parent / "assets"
 ACTIONS = ("ctrl", "servo_offset")
@@ -188,7 +188,7 @@ class Reach(PipelineEnv):
             return pipeline_state.qpos[self._servo_qadr] + action * self._offset_scale
         return self._ctrl_mid + action * self._ctrl_half
 
-    @_mjx_broadcasting
+    @_mjx_tracing
     def step(self, state: State, action: jax.Array) -> State:
         ps = self.pipeline_step(state.pipeline_state, self.ctrl(state.pipeline_state, action))
         target = state.info["target"]

@@ -326,9 +326,11 @@ class SafetyWrapper(Wrapper):
         return res.x, b, extra
 
     def step(self, state: State, action) -> State:
-        a_des = jnp.asarray(action, jnp.float32) * jnp.asarray(self.limits.a_max, jnp.float32)
-        a_safe, b, extra = self._shield(state, a_des)
-        return self.finish(state, a_des, a_safe, b, extra)
+        # the decision's torque model in full float32 on a GPU too, as the physics (``arm._mjx_tracing``)
+        with jax.default_matmul_precision("highest"):
+            a_des = jnp.asarray(action, jnp.float32) * jnp.asarray(self.limits.a_max, jnp.float32)
+            a_safe, b, extra = self._shield(state, a_des)
+            return self.finish(state, a_des, a_safe, b, extra)
 
     def band(self, b, a_safe):
         """``(lower, upper)``: the accelerations a contact may leave each substep at (envs with contacts keep

@@ -55,7 +55,7 @@ from mujoco import mjx
 
 import jaxlimits.impact as _impact
 from jaxlimits.envs.actuation import contact_correction
-from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_broadcasting
+from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_tracing
 
 HOME = np.array([0.0, 0.0, 0.0, -1.57079, 0.0, 1.57079, -0.7853])
 # planar 3-link arm (vertical x-z plane): end effector at (0.29, 0, -0.66), moving along +x well
@@ -228,7 +228,7 @@ class WallStrike(ArmReach):
         gap = jax.random.uniform(k_g, (), jnp.float32, *self.gap)
         return self.reset_to_wall(q, jnp.zeros_like(q), gap)
 
-    @_mjx_broadcasting
+    @_mjx_tracing
     def reset_to_wall(self, q, v, gap) -> State:
         """A state at ``(q, v)`` with the wall ``gap`` [m] ahead of the ball's surface along ``normal``."""
         nrm = jnp.asarray(self.normal, jnp.float32)
@@ -369,7 +369,7 @@ class WallStrike(ArmReach):
         """The motors' ctrl ``tau`` [N m] (gear 1), then actuation and smooth acceleration (before the solve)."""
         return mjx.fwd_acceleration(self.sys, mjx.fwd_actuation(self.sys, d.replace(ctrl=tau)))
 
-    @_mjx_broadcasting
+    @_mjx_tracing
     def step_acc(self, state: State, a: jax.Array, band=None) -> State:
         """One control step of ``frame_skip`` substeps with joint acceleration ``a`` held; contacts on.
 

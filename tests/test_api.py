@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxlimits as jl
-from jaxlimits._xla_flags import merged_xla_flags
+from jaxlimits._xla_flags import cpu_flags_known, merged_xla_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = {"mujoco", "brax", "gymnasium", "torch", "stable_baselines3", "flax", "matplotlib"}
@@ -130,3 +130,15 @@ def test_xla_flags_are_appended_without_clobbering():
     kept = merged_xla_flags("--xla_force_host_platform_device_count=2")
     assert kept.split() == ["--xla_force_host_platform_device_count=2", "--xla_cpu_use_fusion_emitters=false"]
     assert merged_xla_flags("--xla_cpu_use_fusion_emitters=true") == "--xla_cpu_use_fusion_emitters=true"
+    # only for the jaxlib whose XLA knows the flag: jaxlib 0.11.2's aborts on it (seen on a GPU machine)
+    assert merged_xla_flags("", "0.9.2") == "--xla_cpu_use_fusion_emitters=false"
+    assert merged_xla_flags("", "0.11.2") == "" and merged_xla_flags("--a=1", "0.11.2") == "--a=1"
+    assert [cpu_flags_known(v) for v in ("0.9.2", "0.9.0", "0.10.0", "0.11.2", "1.0", "dev", None)] == [
+        True,
+        True,
+        False,
+        False,
+        False,
+        False,
+        True,
+    ]
