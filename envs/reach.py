@@ -44,8 +44,8 @@ TARGETS = ("reachable", "box")
 
 
 def servo_offset_scale(mjm: mujoco.MjModel) -> np.ndarray:
-    """``(nu,)`` [rad or m]: ``forcerange_hi / kp`` of every actuator, each a position servo on a joint
-    (``<position>``, or ``general`` with gain ``kp`` and bias ``(0, -kp, -kv)``) with a force range.
+    """``(nu,)`` [rad or m]: ``forcerange_hi / kp`` of every actuator, each a position servo on a joint with
+    gear 1 (``<position>``, or ``general`` with gain ``kp`` and bias ``(0, -kp, -kv)``) and a force range.
 
     Raises ``ValueError`` naming the first actuator that is not one."""
     out = np.empty(mjm.nu)
@@ -54,6 +54,7 @@ def servo_offset_scale(mjm: mujoco.MjModel) -> np.ndarray:
         kp = float(mjm.actuator_gainprm[i, 0])
         servo = (
             mjm.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT
+            and mjm.actuator_gear[i, 0] == 1  # the servo's target is then the joint's position itself
             and mjm.actuator_gaintype[i] == mujoco.mjtGain.mjGAIN_FIXED
             and mjm.actuator_biastype[i] == mujoco.mjtBias.mjBIAS_AFFINE
             and kp > 0
@@ -160,11 +161,12 @@ class Reach(PipelineEnv):
         """The robot's ``MjModel`` (for reading and rendering)."""
         return self.sys.mj_model
 
+    @_mjx_tracing
     def _ee(self, q):
-        with jax.numpy_rank_promotion("allow"):
-            d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=q))
+        d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=q))
         return d.site_xpos[self._site]
 
+    @_mjx_tracing
     def reset(self, rng: jax.Array) -> State:
         k_q, k_t = jax.random.split(rng)
         if self.start_mode == "home":
@@ -176,8 +178,7 @@ class Reach(PipelineEnv):
             target = jax.random.uniform(k_t, (3,), jnp.float32, self._box[0], self._box[1])
         else:
             target = self._ee(jax.random.uniform(k_t, self._q_lo.shape, jnp.float32, self._q_lo, self._q_hi))
-        with jax.numpy_rank_promotion("allow"):
-            ps = self.pipeline_init(q, jnp.zeros(self.sys.nv, jnp.float32))
+        ps = self.pipeline_init(q, jnp.zeros(self.sys.nv, jnp.float32))
         zero = jnp.zeros((), jnp.float32)
         dist = jnp.linalg.norm(ps.site_xpos[self._site] - target)
         return State(ps, self._obs(ps, target), -dist, zero, {"distance": dist}, {"target": target})
@@ -201,8 +202,7 @@ class Reach(PipelineEnv):
         ee = ps.site_xpos[self._site]
         parts = [jnp.cos(ps.qpos), jnp.sin(ps.qpos), ps.qvel, ee, target - ee]
         if self.ik_observation:
-            with jax.numpy_rank_promotion("allow"):  # MJX's own code broadcasts
-                jacp, _ = mjx.jac(self.sys, ps, ee, self._body)
+            jacp, _ = mjx.jac(self.sys, ps, ee, self._body)  # under reset's / step's _mjx_tracing
             parts.append(damped_ls_step(jacp.T, target - ee))
         return jnp.concatenate(parts).astype(jnp.float32)
 

@@ -103,6 +103,10 @@ def test_bad_reach_options_raise_naming_them(kwargs, match):
 
 
 def test_servo_offset_on_motors_names_the_actuator():
+    geared = mujoco.MjModel.from_xml_path(str(PANDA_SERVO))
+    geared.actuator_gear[2, 0] = 2.0  # its target would be 2 q, not q
+    with pytest.raises(ValueError, match="position servos; actuator 'actuator3'"):
+        servo_offset_scale(geared)
     with pytest.raises(ValueError, match="position servos; actuator 'm1'"):
         Reach(ASSETS / "planar3.xml", action="servo_offset")
     with pytest.raises(ValueError, match="keyframe named 'home'"):

@@ -25,7 +25,6 @@ ARM_ACTION_MODES = (
     "task_space",
 )  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
 SERVO_ACTION_MODES = ("ctrl", "servo_offset")  # jaxlimits.envs.reach.ACTIONS
-ACTION_MODES = ARM_ACTION_MODES + SERVO_ACTION_MODES
 SERVO_SHIELDS = ("none", "naive", "viability", "jerk")  # jaxlimits.envs.joint_shield.METHODS
 SHIELD_GRADIENTS = ("exact", "straight_through", "exact_fixed_bounds")  # envs.safety.SHIELD_GRADIENTS
 
@@ -105,15 +104,16 @@ class RunConfig:
         return getattr(self, self.algo).num_eval_envs
 
     def __post_init__(self):
-        checks = [
-            ("env", self.env, ENVS),
-            ("algo", self.algo, ALGOS),
-            ("shield", self.shield, SHIELDS),
-            ("action_mode", self.action_mode, ACTION_MODES),
-        ]
-        for name, value, allowed in checks:
+        if self.env not in ENVS:
+            raise ValueError(f"config field 'env' must be one of {ENVS}, got {self.env!r}")
+        servo = self.env in SERVO_ENVS
+        for name, value, allowed in (
+            ("action_mode", self.action_mode, SERVO_ACTION_MODES if servo else ARM_ACTION_MODES),
+            ("shield", self.shield, SERVO_SHIELDS if servo else SHIELDS),
+            ("algo", self.algo, ("ppo",) if servo else ALGOS),
+        ):
             if value not in allowed:
-                raise ValueError(f"config field {name!r} must be one of {allowed}, got {value!r}")
+                raise ValueError(f"config field {name!r} must be one of {allowed} for env {self.env!r}, got {value!r}")
         for name in ("num_timesteps", "episode_length", "eval_episodes"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
@@ -123,14 +123,6 @@ class RunConfig:
         for name in ("ik_observation", "impact"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"config field {name!r} must be true or false, got {getattr(self, name)!r}")
-        servo = self.env in SERVO_ENVS
-        for name, value, allowed in (
-            ("action_mode", self.action_mode, SERVO_ACTION_MODES if servo else ARM_ACTION_MODES),
-            ("shield", self.shield, SERVO_SHIELDS if servo else SHIELDS),
-            ("algo", self.algo, ("ppo",) if servo else ALGOS),
-        ):
-            if value not in allowed:
-                raise ValueError(f"config field {name!r} must be one of {allowed} for env {self.env!r}, got {value!r}")
         if self.impact and self.env not in CONTACT_ENVS:
             raise ValueError(f"config field 'impact' needs an env with contacts {CONTACT_ENVS}, got env {self.env!r}")
         if self.env in CONTACT_ENVS and (self.ik_observation or self.precision_reward):
