@@ -167,11 +167,16 @@ def kkt_solve(W, G, free, rows, r, s, unroll=True):
 
         def apply(b):
             return _solve_rows(factor, b)
+
+        def apply_columns(b):  # (n, k, *batch): k right-hand sides at once, each entry as in ``apply``
+            return _solve_rows([[e[None] for e in row] for row in factor], b)
     else:
         factor = chol_factor(M, unroll)
 
         def apply(b):
             return chol_apply(factor, b, unroll)
+
+        apply_columns = apply
 
     rf = jnp.where(free, r, 0.0)
     if m == 0:
@@ -182,7 +187,8 @@ def kkt_solve(W, G, free, rows, r, s, unroll=True):
     rows = rows & (jnp.sum(GF * GF, axis=1) > eps * eps * jnp.sum(G * G, axis=1))
     GF = jnp.where(rows[:, None], GF, 0.0)
     y = apply(rf)  # apart from Z: y is linear in tangents, Z is not
-    Z = jnp.stack([apply(GF[j]) for j in range(m)], axis=1)  # (n, m, *batch)
+    # (n, m, *batch); the m solves as one (unrolled one by one, they were most of the program)
+    Z = apply_columns(jnp.swapaxes(GF, 0, 1))
     S = jnp.sum(GF[:, :, None] * Z[None], axis=1)
     reg = 1e2 * eps * (jnp.max(jnp.abs(diagonal(S)), axis=0) + jnp.finfo(W.dtype).tiny)
     S = masked_matrix(S, rows) + reg[None, None] * eye_like(S)
