@@ -71,17 +71,30 @@ class TorqueModel(NamedTuple):
     tau_hi: jax.Array
 
 
+def as_slice(idx):
+    """``idx`` ``(k,)`` as a ``slice`` when it is a contiguous ascending range (NumPy then indexes with views
+    instead of fancy-index copies: the per-substep Python cost of ``CActuation``), else an index array."""
+    idx = np.asarray(idx, np.intp)
+    if len(idx) and np.all(np.diff(idx) == 1):
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
+def _block(M, rows, cols):
+    """``M[rows][:, cols]``: the sub-matrix, for index arrays (``jnp``/NumPy gathers) and slices (views)."""
+    return M[rows][:, cols]
+
+
 def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None):
     """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring. ``dtau`` ``(n,)`` [N m]: a
     torque added to the one realising ``a`` (the contact correction; where the actuators lack it, that is a
     saturation, counted with the torque they lacked)."""
     dofs, other, gear, gain, bias, c_rng, f_rng = robot_arrays
-    M_ss = M_eff[dofs[:, None], dofs[None, :]]
-    tau = M_ss @ a - f_other[dofs]
+    tau = _block(M_eff, dofs, dofs) @ a - f_other[dofs]
     if coupled:
-        M_uu = M_eff[other[:, None], other[None, :]]
-        M_us = M_eff[other[:, None], dofs[None, :]]
-        M_su = M_eff[dofs[:, None], other[None, :]]
+        M_uu = _block(M_eff, other, other)
+        M_us = _block(M_eff, other, dofs)
+        M_su = _block(M_eff, dofs, other)
         a_u = xp.linalg.solve(M_uu, f_other[other] - M_us @ a)
         tau = tau + M_su @ a_u
     if dtau is not None:
@@ -117,7 +130,7 @@ def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=N
     lo, hi = band
     out = r - xp.clip(r, lo, hi)
     H_inv = xp.linalg.inv(M + (J.T * D_active[None, :]) @ J)
-    G = xp.linalg.solve(M_eff, M @ H_inv)[dofs[:, None], dofs[None, :]]
+    G = _block(xp.linalg.solve(M_eff, M @ H_inv), dofs, dofs)
     if torque_box is None:
         dtau = -xp.linalg.solve(G, out)
     else:
@@ -241,7 +254,7 @@ class CActuation:
         self.robot = robot
         self.model = model
         self._arrays = (
-            np.asarray(robot.dof_adr),
+            as_slice(robot.dof_adr),
             np.asarray(robot.other_dofs),
             robot.gear,
             robot.gain,
@@ -254,12 +267,12 @@ class CActuation:
         self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         self._M = np.zeros((model.nv, model.nv))
         self._diag = np.diag_indices(model.nv)
-        self._act = np.asarray(robot.actuator_ids)
-        self._dofs = np.asarray(robot.dof_adr)
-        self._qadr = np.asarray(robot.qpos_adr)
+        self._act = as_slice(robot.actuator_ids)
+        self._dofs = as_slice(robot.dof_adr)
+        self._qadr = as_slice(robot.qpos_adr)
         # the dofs of the kinematic trees holding the shielded joints: M is block-diagonal over trees, so a
         # constraint row touching none of these cannot move the shielded dofs
-        self._tree_dofs = np.flatnonzero(np.isin(model.dof_treeid, model.dof_treeid[self._dofs]))
+        self._tree_dofs = as_slice(np.flatnonzero(np.isin(model.dof_treeid, model.dof_treeid[self._dofs])))
 
     def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray, want_a_des: bool = True):
         """As ``MjxActuation.smooth_stage`` (``d`` is changed in place) and ``asked_acceleration``; returns
@@ -292,7 +305,7 @@ class CActuation:
         lo, hi = torque_range(
             np, self._arrays, d.qpos[self._qadr], d.qvel[dofs], dt, np.asarray(self.robot.limits.a_max)
         )
-        return TorqueModel(M_eff[np.ix_(dofs, dofs)], f_other[dofs], *shrink(lo, hi))
+        return TorqueModel(_block(M_eff, dofs, dofs), f_other[dofs], *shrink(lo, hi))
 
     def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a, band=None):
         """As ``MjxActuation.finish_substep`` (``d`` advanced in place); returns ``(inversion, out)``, ``out``

@@ -66,21 +66,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxlimits.envs.actuation import CActuation, TorqueModel
+from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
 VIOLATIONS = ("position", "velocity", "torque")
 MJ_MAXVAL = mujoco.mjMAXVAL  # mju_isBad(x) is NaN or |x| > mjMAXVAL (1e10)
 _REQUIRED = ("model", "data", "do_simulation", "frame_skip")
-
-
-def _as_slice(idx):
-    """``idx`` as a ``slice`` when it is a contiguous ascending range (cheaper to index with), else an index array."""
-    idx = np.asarray(idx, np.intp)
-    if len(idx) and np.all(np.diff(idx) == 1):
-        return slice(int(idx[0]), int(idx[-1]) + 1)
-    return idx
 
 
 def _zero_tally() -> dict:
@@ -175,8 +167,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         n = rob.n
         self._n = n
         self._nu = int(base.model.nu)
-        self._qadr = _as_slice(rob.qpos_adr)  # a slice when contiguous: views instead of fancy-index copies
-        self._dofs = _as_slice(rob.dof_adr)
+        self._qadr = as_slice(rob.qpos_adr)  # a slice when contiguous: views instead of fancy-index copies
+        self._dofs = as_slice(rob.dof_adr)
         self._shielded_act = np.zeros(self._nu, bool)
         self._shielded_act[rob.actuator_ids] = True
         lim = rob.limits
