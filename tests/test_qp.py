@@ -701,3 +701,31 @@ def test_kkt_solve_program_does_not_grow_with_the_rows():
 
     one, many = eqns(1), eqns(14)
     assert many < 1.5 * one, (one, many)
+
+
+@pytest.mark.parametrize("m", [0, 14])
+def test_one_problem_runs_the_robust_path_only_when_the_fast_path_leaves_it_unsettled(m):
+    """For a batch of one the gather of the one pending problem has a constant index, and XLA hoisted the whole
+    robust path out of its loop, running it on every call (the shielded Gymnasium decision: 320 instead of 110 us
+    per QP where the fast path had settled it). Behind a ``cond`` it cannot be: no instruction of the robust path
+    (``named_scope("robust_path")``) may sit in the compiled program's entry computation, which always runs.
+    And the robust path still answers where it is needed (two contradicting rows: infeasible, least violation)."""
+    import re
+
+    n = 7
+    f = jax.jit(lambda a, lo, up, W, G, h: jl.solve_box_qp(a, lo, up, W, G=G, h=h))
+    spec = [jax.ShapeDtypeStruct(s, jnp.float32) for s in ((n,), (n,), (n,), (n, n), (m, n), (m,))]
+    text = f.lower(*spec).compile().as_text()
+    assert "robust_path" in text  # the scope is there at all (else the check below checks nothing)
+    entry = next(c for c in re.split(r"\n(?=\S)", text) if c.startswith("ENTRY"))
+    hoisted = [line.strip()[:160] for line in entry.splitlines() if "robust_path" in line]
+    assert not hoisted, hoisted
+
+    if m:
+        e = np.eye(n, dtype=np.float32)[:1]
+        G = np.concatenate([e, -e, np.zeros((m - 2, n), np.float32)])
+        h = np.concatenate([[-0.5, -0.5], np.ones(m - 2)]).astype(np.float32)  # x0 <= -0.5 and x0 >= 0.5
+        one = np.ones(n, np.float32)
+        res = f(np.zeros(n, np.float32), -one, one, np.eye(n, dtype=np.float32), G, h)
+        assert bool(res.infeasible) and bool(res.converged)
+        np.testing.assert_allclose(float(res.violation), 0.5, atol=1e-5)

@@ -109,6 +109,7 @@ def _fallback(args, fast: qp_active_set.Result, max_iter, chunk: int) -> qp_acti
     ``split`` is all False); ``it`` adds the fast path's iterations.
     """
 
+    @jax.named_scope("robust_path")  # named in the compiled program (tests/test_qp.py checks where it runs)
     def body(c: _Pending) -> _Pending:
         idx = qp_pdas.pick(c.pending, chunk)
         sub = qp_pdas.take(tuple(args) + (c.out.x,), idx, 0)
