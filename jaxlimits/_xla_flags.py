@@ -54,10 +54,13 @@ def set_cpu_xla_flags() -> bool:
     """Put the CPU flags into ``os.environ['XLA_FLAGS']``; return False if it is too late.
 
     XLA reads XLA_FLAGS when JAX starts its first backend (the first computation), not at
-    ``import jax``. If a backend is already running the flags cannot take effect; a warning says so.
+    ``import jax``. If a backend is already running and the flags were not already set, they cannot take
+    effect; a warning says so. (Set already, e.g. by an earlier ``import jaxlimits``, they are in effect: no
+    warning. It warned before, a false alarm on ``import jaxlimits.envs`` after some JAX work.)
     """
-    os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS", ""), _installed_jaxlib())
-    if _jax_backend_started():
+    before = os.environ.get("XLA_FLAGS", "")
+    os.environ["XLA_FLAGS"] = merged_xla_flags(before, _installed_jaxlib())
+    if os.environ["XLA_FLAGS"] != before and _jax_backend_started():
         current = os.environ["XLA_FLAGS"]
         warnings.warn(
             "jax was imported before jaxlimits could set XLA_FLAGS="

@@ -125,6 +125,24 @@ def test_limits_may_be_traced_arguments():
     np.testing.assert_array_equal(eager.lower, traced.lower)
 
 
+def test_xla_flags_warn_only_when_they_come_too_late(monkeypatch):
+    """With a backend running (the suite's), setting flags that are already set is no warning (they are in
+    effect); setting missing ones is, and says False."""
+    import warnings
+
+    from jaxlimits._xla_flags import set_cpu_xla_flags
+
+    jnp.zeros(1).block_until_ready()  # a backend runs
+    monkeypatch.setenv("XLA_FLAGS", merged_xla_flags("", "0.9.2"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert set_cpu_xla_flags()
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr("jaxlimits._xla_flags._installed_jaxlib", lambda: "0.9.2")
+    with pytest.warns(RuntimeWarning, match="jax was imported before jaxlimits"):
+        assert not set_cpu_xla_flags()
+
+
 def test_xla_flags_are_appended_without_clobbering():
     assert merged_xla_flags("") == "--xla_cpu_use_fusion_emitters=false"
     kept = merged_xla_flags("--xla_force_host_platform_device_count=2")

@@ -173,25 +173,26 @@ def _attach(x, lam, free, x_des, lower, upper, W, G, h, eq):
 
 
 def _attach_jvp(primals, tangents):
-    """The tangent of ``_attach``, computed on the whole batch with the batch last (``qp_linalg``'s
-    layout); zero tangents (``symbolic_zeros``) are left out. Not block by block like the fast path:
-    JAX 0.9 fails to transpose a ``lax.map`` inside a custom JVP, and ``linear_call`` (a linear map
-    with its transpose given) has no batching rule, so ``vmap`` of the derivative would break."""
+    """The tangent of ``_attach``: one problem's (``_tangent`` at batch ``()``) ``vmap``-ed over the batch, so
+    the derivative's program has the batch first; zero tangents (``symbolic_zeros``) are left out. Written
+    batch last (``qp_linalg``'s layout, as the fast path) it cost 2-3x more in the backward pass (the
+    transpose): ``benchmarks/bench_qp.py`` dense forward+backward at 4096, 2.48 -> 1.82 ms, forward 1.28 ms
+    (docs/qp.md). Not block by block like the fast path: JAX 0.9 fails to transpose a ``lax.map`` inside a
+    custom JVP, and ``linear_call`` (a linear map with its transpose given) has no batching rule, so ``vmap``
+    of the derivative would break."""
     x, lam, free, x_des, lower, upper, W, G, h, eq = primals
     tangents = tuple(None if isinstance(t, SymbolicZero) else t for t in tangents[3:9])
     if all(t is None for t in tangents):
         return x, jnp.zeros_like(x)
 
-    def last(tree):
-        return jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), tree)
-
     def sym(W):
-        return None if W is None else 0.5 * (W + jnp.swapaxes(W, 0, 1))
+        return None if W is None else 0.5 * (W + W.T)
 
-    x_des, lower, upper, W, G, h = last((x_des, lower, upper, W, G, h))
-    dxd, dl, du, dW, dG, dh = last(tangents)
-    dx = _tangent(*last((x, lam, free)), (x_des, lower, upper, sym(W), G, h), (dxd, dl, du, sym(dW), dG, dh), last(eq))
-    return x, jnp.moveaxis(dx, -1, 0)
+    def one(x, lam, free, x_des, lower, upper, W, G, h, eq, tangents):
+        dxd, dl, du, dW, dG, dh = tangents
+        return _tangent(x, lam, free, (x_des, lower, upper, sym(W), G, h), (dxd, dl, du, sym(dW), dG, dh), eq)
+
+    return x, jax.vmap(one)(x, lam, free, x_des, lower, upper, W, G, h, eq, tangents)
 
 
 _attach.defjvp(_attach_jvp, symbolic_zeros=True)
