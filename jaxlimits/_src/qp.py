@@ -120,9 +120,9 @@ def _fallback(args, fast: qp_active_set.Result, max_iter, chunk: int) -> qp_acti
     def robust(fast):
         return jax.lax.while_loop(lambda c: jnp.any(c.pending), body, _Pending(fast, ~fast.ok)).out
 
-    # behind a cond although the loop would run no iteration: for a batch of one, the gather of the one
-    # pending problem has a constant index, so XLA hoists the whole robust path out of the loop and ran it
-    # every call (one shielded Gymnasium decision: 320 us instead of 110 us, where the fast path settled)
+    # behind a cond although the loop would then run no iteration: for a batch of one, the gather of the one
+    # pending problem has a constant index, so XLA hoisted the whole robust path out of the loop and ran it on
+    # every call (one shielded Gymnasium decision's QP: 320 us instead of 110 us where the fast path settled)
     return jax.lax.cond(jnp.any(~fast.ok), robust, lambda fast: fast, fast)
 
 
@@ -131,7 +131,8 @@ def _fallback(args, fast: qp_active_set.Result, max_iter, chunk: int) -> qp_acti
 
 
 def _tangent(x, lam, free, primals, tangents, eq):
-    """Implicit derivative: the KKT conditions of each problem's final active set (batch last).
+    """Implicit derivative: the KKT conditions of each problem's final active set (batch last; ``_attach_jvp``
+    calls it for one problem, batch ``()``, and ``vmap``-s it).
 
     ``free`` ``(n, *batch)``: the coordinates free in the derivative (``active_free``); rows with
     ``lam > 0`` or in ``eq`` are held; ``W`` symmetric. ``tangents``: ``None`` for a zero tangent
