@@ -81,8 +81,12 @@ def as_slice(idx):
 
 
 def _block(M, rows, cols):
-    """``M[rows][:, cols]``: the sub-matrix, for index arrays (``jnp``/NumPy gathers) and slices (views)."""
-    return M[rows][:, cols]
+    """The sub-matrix ``M[rows, :][:, cols]``: a view where both are slices (``as_slice``, the NumPy path), else
+    one gather (index arrays: the MJX path's traced program keeps a single gather)."""
+    if isinstance(rows, slice) and isinstance(cols, slice):
+        return M[rows, cols]
+    rows, cols = (np.arange(i.start, i.stop) if isinstance(i, slice) else i for i in (rows, cols))
+    return M[rows[:, None], cols[None, :]]
 
 
 def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None):
@@ -268,7 +272,7 @@ class CActuation:
         self._M = np.zeros((model.nv, model.nv))
         self._diag = np.diag_indices(model.nv)
         self._act = as_slice(robot.actuator_ids)
-        self._dofs = as_slice(robot.dof_adr)
+        self._dofs = self._arrays[0]
         self._qadr = as_slice(robot.qpos_adr)
         # the dofs of the kinematic trees holding the shielded joints: M is block-diagonal over trees, so a
         # constraint row touching none of these cannot move the shielded dofs
