@@ -31,8 +31,9 @@ forms it); then the substep is solved again with the corrected ctrl and integrat
 substep's acceleration inside the band keeps the step's limits: the position, velocity and viability
 constraints are monotone in each substep's acceleration (positive coefficients in
 ``q+ = q + h v + h^2 a`` per substep), so the band computed for a held acceleration bounds any
-sequence inside it. What the actuators cannot deliver is a saturation (counted); RK4 (no constraint
-stage between its stages) is not corrected.
+sequence inside it. What the actuators cannot deliver is a saturation (counted). RK4 holds ``ctrl`` over
+four stages, each with its own constraint forces: in C MuJoCo a substep that left the band is retaken
+(``CActuation._rk4_step_in_band``); MJX's RK4 substeps are not.
 
 Two implementations of the same formula: ``MjxActuation`` (JAX, MJX data; for Brax) and
 ``CActuation`` (NumPy over C MuJoCo's ``MjData``; for Gymnasium).
@@ -115,6 +116,15 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None)
     return ctrl, excess, saturated
 
 
+def contact_response(xp, dofs, M, M_eff, J, D_active):
+    """``(G, H_inv)``: ``G`` ``(n, n)`` the change of the shielded dofs' realised acceleration per unit torque
+    added on them, ``G = [M_eff^-1 M H^-1]_ss``, ``H = M + J^T diag(D_active) J`` (the constraint solver's
+    Hessian; exact while its active rows do not change), and ``H^-1`` ``(nv, nv)``. Arguments as
+    ``contact_correction``."""
+    H_inv = xp.linalg.inv(M + (J.T * D_active[None, :]) @ J)
+    return _block(xp.linalg.solve(M_eff, M @ H_inv), dofs, dofs), H_inv
+
+
 def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=None):
     """The torque change ``(n,)`` [N m] bringing the shielded dofs' realised acceleration back into ``band``
     (module docstring): ``M`` ``(nv, nv)`` the mass matrix the constraint solver used, ``J`` ``(nefc, nv)``,
@@ -133,8 +143,7 @@ def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=N
     r = xp.linalg.solve(M_eff, qfrc)[dofs]
     lo, hi = band
     out = r - xp.clip(r, lo, hi)
-    H_inv = xp.linalg.inv(M + (J.T * D_active[None, :]) @ J)
-    G = _block(xp.linalg.solve(M_eff, M @ H_inv), dofs, dofs)
+    G, H_inv = contact_response(xp, dofs, M, M_eff, J, D_active)
     if torque_box is None:
         dtau = -xp.linalg.solve(G, out)
     else:
@@ -147,6 +156,24 @@ def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=N
         dtau = jl.solve_box_qp(zero, xp.minimum(t_lo, 0.0), xp.maximum(t_hi, 0.0), 1.0 / scale**2, G=rows, h=h).x
     dtau = xp.where(xp.all(xp.isfinite(dtau)) & xp.any(out != 0), dtau, 0.0)
     return dtau, out, H_inv[:, dofs] @ dtau
+
+
+def other_rows_on_trees(model, robot: Robot) -> bool:
+    """Whether ``model`` (``mujoco.MjModel`` or ``mjx.Model``) has constraint rows, other than contacts and the
+    shielded joints' own limit rows, that can act on the shielded joints' kinematic trees: an unshielded limited
+    joint there (Brax's inverted pendulum: its pole's hinge, coupled to the shielded cart through ``M``), an
+    equality, friction loss on a tree dof, a limited tendon. The substep's correction then runs as for a
+    contact (static: decided once per model)."""
+    trees = np.unique(np.asarray(model.dof_treeid)[np.asarray(robot.dof_adr)])
+    jnt_tree = np.asarray(model.dof_treeid)[np.asarray(model.jnt_dofadr)]
+    shielded = np.isin(np.arange(len(jnt_tree)), np.asarray(robot.joint_ids))
+    limited = np.asarray(model.jnt_limited).astype(bool) & ~shielded & np.isin(jnt_tree, trees)
+    friction = np.asarray(model.dof_frictionloss)[np.isin(np.asarray(model.dof_treeid), trees)] > 0
+    return bool(limited.any() or int(model.neq) or friction.any() or np.asarray(model.tendon_limited).any())
+
+
+RK4_PASSES = 3  # C MuJoCo, RK4: substeps retaken with the realised excess (CActuation._rk4_step_in_band)
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 class MjxActuation:
@@ -169,6 +196,7 @@ class MjxActuation:
         self._damping = (robot.timestep * robot.implicit_damping).astype(f32)
         self._stiff = (0.5 * robot.timestep * robot.rk4_stiffness).astype(f32)
         self._act = np.asarray(robot.actuator_ids)
+        self._other_rows = other_rows_on_trees(sys, robot)
         integ = int(sys.opt.integrator)
         self._integrate = {
             int(mujoco.mjtIntegrator.mjINT_EULER): mjx.euler,
@@ -236,9 +264,9 @@ class MjxActuation:
         inv = invert()
         dc = self._constraint_stage(d, inv.ctrl)
         out = jnp.zeros_like(a)
-        # contacts only (a static size): the shield keeps the joints off their limits' rows, and a model
-        # without contacts pays nothing
-        if band is not None and d._impl.ncon and self._integrate is not mjx.rungekutta4:
+        # contacts (a static size) or other rows that reach the shielded trees (other_rows_on_trees): the shield
+        # keeps its joints off their own limits' rows, and a model without either pays nothing
+        if band is not None and (d._impl.ncon or self._other_rows) and self._integrate is not mjx.rungekutta4:
             impl = dc._impl
             D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
             M = mjx.full_m(self.sys, dc)
@@ -269,6 +297,8 @@ class CActuation:
         self._damping = robot.timestep * robot.implicit_damping
         self._stiff = 0.5 * robot.timestep * robot.rk4_stiffness
         self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+        self._state = np.empty(mujoco.mj_stateSize(model, _STATE))  # an RK4 substep's start (_rk4_step_in_band)
+        self._other_rows = other_rows_on_trees(model, robot)
         self._M = np.zeros((model.nv, model.nv))
         self._diag = np.diag_indices(model.nv)
         self._act = as_slice(robot.actuator_ids)
@@ -311,7 +341,7 @@ class CActuation:
         )
         return TorqueModel(_block(M_eff, dofs, dofs), f_other[dofs], *shrink(lo, hi))
 
-    def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a, band=None):
+    def finish_substep(self, d: mujoco.MjData, M_eff, f_other, a, band=None, rk4_tol=0.0):
         """As ``MjxActuation.finish_substep`` (``d`` advanced in place); returns ``(inversion, out)``, ``out``
         ``(n,)`` the excess of the uncorrected realised acceleration over the band [rad/s^2], or ``None`` where
         it lay inside (C MuJoCo runs the check only in substeps with constraint rows on the shielded joints'
@@ -320,25 +350,84 @@ class CActuation:
         q, v = d.qpos[self._qadr], d.qvel[self._dofs]
         ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled)
         d.ctrl[self._act] = ctrl
-        out = None
-        if band is not None and d.ncon and not self._rk4 and self._rows_touch_trees(d):
+        out, dtau, G = None, np.zeros_like(v), None
+        if band is not None and (d.ncon or self._other_rows) and self._rows_touch_trees(d):
             mujoco.mj_fwdActuation(m, d)
             mujoco.mj_fwdAcceleration(m, d)
             mujoco.mj_fwdConstraint(m, d)
             qfrc = d.qfrc_smooth + d.qfrc_constraint
             r = np.linalg.solve(M_eff, qfrc)[self._dofs]
+            J, D_active = self._efc_jacobian(d), self._efc_d_active(d)
+            if self._rk4:
+                G = contact_response(np, self._dofs, self._full_m(d), M_eff, J, D_active)[0]
             if np.any((r < band[0]) | (r > band[1])):
-                dtau, out, dqacc = contact_correction(
-                    np, self._dofs, self._full_m(d), M_eff, self._efc_jacobian(d), self._efc_d_active(d), qfrc, band
-                )
+                dtau, out, dqacc = contact_correction(np, self._dofs, self._full_m(d), M_eff, J, D_active, qfrc, band)
                 d.qacc_warmstart[:] = d.qacc + dqacc
                 ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
                 d.ctrl[self._act] = ctrl
+        if self._rk4 and band is not None:
+            inv = Inversion(ctrl, excess, sat)
+            return self._rk4_step_in_band(d, M_eff, f_other, a, q, v, band, dtau, G, rk4_tol, inv), out
         if self._rk4:
             mujoco.mj_step(m, d)
         else:
             mujoco.mj_step2(m, d)
         return Inversion(ctrl, excess, sat), out
+
+    def _rk4_step_in_band(self, d: mujoco.MjData, M_eff, f_other, a, q, v, band, dtau, G, rk4_tol, inv) -> Inversion:
+        """An RK4 substep with a band. RK4 holds ``ctrl`` over four stages whose constraint forces differ from the
+        first stage's (the one the correction solved; a contact may even start within the substep), so the step
+        is taken and its realised acceleration ``(v+ - v) / h`` read; where that left the band by more than
+        ``rk4_tol`` [rad/s^2] (scalar or ``(n,)``; ``joint_shield.RK4_RESTEP``), the step is taken
+        again from the same state (``mj_getState``/``mj_setState``) with the torque moved by the realised excess,
+        through the response ``G`` (``contact_response``: the first stage's contacts, else the last stage's,
+        else the smooth ``[M_eff^-1]_ss``; Broyden's update from the passes after), at most ``RK4_PASSES``
+        times (``inv``: the first pass's commands, for ``dtau``), keeping the best pass (a pass that is no better, e.g. saturated, ends it). Without contacts this
+        corrects RK4's own deviation from the held acceleration (``ctrl`` held over the stages; joint damping
+        fast against the substep: Gymnasium's Ant left the band by up to ~10 rad/s^2)."""
+        m, h = self.model, self.robot.timestep
+        spec, state = _STATE, self._state
+        mujoco.mj_getState(m, d, state, spec)
+        lo, hi = band
+        v = v.copy()
+        best = prev = tol = None
+        for k in range(RK4_PASSES + 1):
+            d.ctrl[self._act] = inv.ctrl
+            mujoco.mj_step(m, d)
+            r = (d.qvel[self._dofs] - v) / h
+            out = r - np.clip(r, lo, hi)
+            err = float(np.max(np.abs(out)))
+            if k == 0 and err == 0.0:  # inside the band: the common case
+                return inv
+            if tol is None:
+                tol = np.maximum(rk4_tol, 1e-9 * (1.0 + np.maximum(np.abs(lo), np.abs(hi))))
+            if best is not None and not err < best[0]:  # no better (saturated, or the response changed): the best
+                mujoco.mj_setState(m, d, state, spec)
+                d.ctrl[self._act] = best[1].ctrl
+                mujoco.mj_step(m, d)
+                return best[1]
+            best = (err, inv)
+            if k == RK4_PASSES or not np.any(np.abs(out) > tol):
+                break
+            if G is None and d.ncon and self._rows_touch_trees(d):  # a contact began within the substep
+                M_end = self._full_m(d)
+                M_eff_end = M_end + np.diag(self._damping)
+                G = contact_response(np, self._dofs, M_end, M_eff_end, self._efc_jacobian(d), self._efc_d_active(d))[0]
+            elif G is None:  # none: the smooth response
+                G = _block(np.linalg.inv(M_eff), self._dofs, self._dofs)
+            if prev is not None:  # Broyden's update of the response from the last two passes
+                s_, y_ = dtau - prev[0], r - prev[1]
+                ss = float(s_ @ s_)
+                if ss > 0:
+                    G = G + np.outer(y_ - G @ s_, s_) / ss
+            prev = (dtau.copy(), r.copy())
+            step = np.linalg.solve(G, out)
+            if not np.all(np.isfinite(step)):
+                break
+            dtau = dtau - step
+            mujoco.mj_setState(m, d, state, spec)
+            inv = Inversion(*_invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau))
+        return inv
 
     def _rows_touch_trees(self, d: mujoco.MjData) -> bool:
         """Whether a constraint row of ``d`` (made by ``mj_step1``) has a Jacobian entry on the shielded joints'

@@ -67,7 +67,7 @@ import mujoco
 import numpy as np
 
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
-from jaxlimits.envs.joint_shield import BOUNDS_TOL, SafeAcceleration
+from jaxlimits.envs.joint_shield import BOUNDS_TOL, RK4_MARGIN, RK4_RESTEP, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
 VIOLATIONS = ("position", "velocity", "torque")
@@ -260,13 +260,14 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
         band = None if not self.correct_contacts else (np.minimum(lower, a_safe), np.maximum(upper, a_safe))
 
+        rk4_tol = RK4_RESTEP * RK4_MARGIN * self._v_max / (self._h * n_frames)
         V[0] = d.qvel[dofs]
         corrected = 0.0
         disturbed = False
         for k in range(n_frames):
             if k:
                 _, M, f = act.smooth_stage(d, ctrl, want_a_des=False)
-            inv, out_k = act.finish_substep(d, M, f, a_safe, band)
+            inv, out_k = act.finish_substep(d, M, f, a_safe, band, rk4_tol)
             if out_k is not None:
                 out_k = np.abs(out_k)
                 corrected = max(corrected, float(np.max(out_k, where=out_k > self._correct_tol, initial=0.0)))

@@ -14,7 +14,9 @@ command as asked, only the NaN guard).
 RK4 realises the held acceleration only to second order (``robot.py``): the limits the bounds use
 are tightened by ``RK4_MARGIN`` (positions by ``RK4_MARGIN v_max dt``, velocities by
 ``RK4_MARGIN v_max``), a hundred times the error measured on Gymnasium's Reacher; the violations
-are measured against the model's own limits.
+are measured against the model's own limits. Where a substep deviates more (contacts within the
+substep, joint damping fast against it: Gymnasium's Ant), the Gymnasium wrapper retakes it
+(``RK4_RESTEP``, ``actuation.CActuation``).
 """
 
 from __future__ import annotations
@@ -29,6 +31,10 @@ from jaxlimits.envs.robot import Robot
 
 METHODS = ("viability", "jerk", "naive", "none")
 RK4_MARGIN = 1e-3
+# C MuJoCo's RK4 substeps are retaken where their realised acceleration leaves the band by more than this
+# fraction of the margin's worth per substep, RK4_RESTEP RK4_MARGIN v_max / dt (actuation.CActuation); smaller
+# deviations use at most a quarter of the velocity margin over the step, an eighth of the position margin
+RK4_RESTEP = 0.25
 # the first (torque-aware) solve in the acceleration: the same problem as in the torque, cheaper to settle
 # (``_torque_space``); False keeps the torque-space form (the A/B of docs/shield.md and tests/test_joint_shield.py)
 ACCEL_SPACE_FIRST = True

@@ -10,8 +10,9 @@ free objects and other bodies may exist elsewhere in the model) and reads, for e
 - its actuator (exactly one per shielded joint) and that actuator's torque range;
 - ``v_max``/``a_max``/``j_max`` from the arguments (scalar or per joint), else from the MJCF custom
   numerics ``jaxlimits_v_max``/``jaxlimits_a_max``/``jaxlimits_j_max``; without either, ``a_max`` is
-  derived from the actuators' torque (``torque_derived_a_max``, Del Prete's Alg. 4 made
-  conservative over sampled states), ``v_max`` is an error naming the joints.
+  derived from the actuators' torque (``_braking_capacity``, Del Prete's Alg. 4 made
+  conservative over sampled states, lowered where Del Prete's condition (11) over the control period
+  allows less: ``_condition_11_cap``), ``v_max`` is an error naming the joints.
 
 Supported actuators (anything else is an eager error naming the actuator): joint transmission
 (``trntype`` joint) on a hinge or slide joint, no activation dynamics (``dyntype`` none), fixed gain
@@ -165,7 +166,7 @@ class Robot:
         ``gear (gain ctrl + b0 + b1 gear q + b2 gear v)``.
       ctrl_range, force_range: ``(n, 2)`` (``±inf`` when not limited).
       tau_max: ``(n,)`` joint torque [N m or N] the actuator can apply in the braking direction at the
-        worst sampled state (what ``torque_derived_a_max`` used; informative).
+        worst sampled state (what ``_braking_capacity`` used; informative).
       integrator: ``"semi_implicit"`` (Euler, implicitfast) or ``"zoh"`` (RK4), for ``jl.acc_bounds``.
       timestep: the physics substep ``h`` [s].
       implicit_damping: ``(nv,)`` the diagonal ``D`` the integrator treats implicitly: it solves
@@ -232,7 +233,8 @@ class Robot:
         joint, actuator or field when something is missing or unsupported.
 
         ``torque_margin`` (0, 1]: the torque-derived ``a_max`` is this fraction of the sampled braking
-        capacity; ``torque_quantile`` [0, 1): which sampled state sets it (0: the worst of
+        capacity, lowered where needed to what condition (11) allows over ``control_dt``
+        (``_condition_11_cap``); ``torque_quantile`` [0, 1): which sampled state sets it (0: the worst of
         ``torque_samples``; default ``None``: the worst, unless the actuators cannot brake some joint at
         some sampled state, then the first of 0.1 %, 1 %, 5 % that gives every joint a positive
         ``a_max``, with a warning; see ``_braking_capacity``). Sampled, so an estimate, not a bound: the
@@ -343,6 +345,7 @@ class Robot:
                     "pass a_max= explicitly or lower v_max"
                 )
             a, source = torque_margin * s_brake, "torque"
+            a = np.minimum(a, _condition_11_cap(limited, q_min, q_max, v, control_dt))
         limits = jl.JointLimits(q_min, q_max, v, a, j)
         return cls(limits=limits, tau_max=tau, a_max_source=source, brake_shortfall=shortfall, **partial)
 
@@ -462,6 +465,19 @@ def _coupled(mjm: mujoco.MjModel, dofs: np.ndarray) -> bool:
     return False
 
 
+CONDITION_11_MARGIN = 1e-2  # the torque-derived a_max stays this far inside condition (11) (RK4's tightening: 1e-3)
+
+
+def _condition_11_cap(limited, q_min, q_max, v_max, dt: float) -> np.ndarray:
+    """The largest ``a_max`` ``(n,)`` [rad/s^2] that Del Prete's condition (11) allows over the control period
+    ``dt``, ``min((q_max - q_min) / dt^2, v_max / dt)`` (an unlimited joint: ``v_max / dt``), less
+    ``CONDITION_11_MARGIN``. A torque-derived ``a_max`` above it is lowered to it: braking assumed weaker than
+    the actuators' is still realisable, and the bounds are exact only under (11) (e.g. Gymnasium's Ant, 50 ms
+    steps: 105 rad/s^2 of torque, 60 allowed at ``v_max = 3``)."""
+    span = np.where(limited, q_max - q_min, np.inf)
+    return (1.0 - CONDITION_11_MARGIN) * np.minimum(span / dt**2, v_max / dt)
+
+
 def _sample_states(mjm, qadr, limited, q_min, q_max, v_max, count, rng):
     """Positions uniform in the ranges (unlimited: in [-pi, pi]); velocities uniform for half the samples,
     at the vertices of the ``v_max`` box for the rest (the bias forces are quadratic in v)."""
@@ -517,7 +533,8 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: flo
     # coupled: one uniform scale of that box, as jl.torque.box_scale (the other joints anywhere in it)
     reach = np.abs(M) @ a_nom  # (N, n)
     ratio = np.where(reach > 0, avail / np.where(reach > 0, reach, 1.0), np.inf)
-    scale = min(1.0, float(np.quantile(np.min(ratio, axis=1), quantile)))
+    # inf where no joint can brake (reach 0): capped to a finite float, so the quantile does not subtract inf - inf
+    scale = min(1.0, float(np.quantile(np.minimum(np.min(ratio, axis=1), np.finfo(float).max), quantile)))
     s2 = np.where(s_diag > 0, max(scale, 0.0) * a_nom, s_diag)
     infeasible = np.mean(avail - np.abs(M) @ s2.clip(0.0) < 0.0, axis=0)
     tau = np.quantile(avail, quantile, axis=0)

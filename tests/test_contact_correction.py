@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from jaxlimits.envs.actuation import CActuation, MjxActuation
+from jaxlimits.envs.actuation import CActuation, MjxActuation, other_rows_on_trees
 from jaxlimits.envs.robot import Robot
 
 # a sphere on two actuated slides (x, z), pressed 5 mm into the floor: the contact pushes it up and, through
@@ -156,3 +156,62 @@ def test_the_torque_box_moves_the_correction_to_the_joints_that_can_give_it(x64)
     tight = (jnp.array([-0.1, -0.1]), jnp.array([0.1, 0.1]))
     dtau, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=tight)
     np.testing.assert_allclose(np.asarray(dtau), [-0.1, 0.1], atol=1e-6)  # the box holds: its corner nearest the band
+
+
+# a cart (the shielded slide) under a pole whose hinge (not shielded, no actuator) is pressed 1 degree past its
+# 20 degree limit: the limit's constraint force acts on the hinge and, through M, on the cart, with no contact
+CARTPOLE = """<mujoco><option timestep="0.01" integrator="{integrator}"/>
+  <worldbody><body><joint name="slider" type="slide" axis="1 0 0" range="-1 1"/>
+      <geom type="box" size="0.1 0.1 0.05" mass="1" contype="0" conaffinity="0"/>
+      <body><joint name="hinge" type="hinge" axis="0 1 0" range="-20 20"/>
+        <geom type="capsule" fromto="0 0 0 0 0 0.6" size="0.05" mass="1" contype="0" conaffinity="0"/></body></body>
+    {other}</worldbody>
+  <actuator><motor joint="slider" ctrlrange="-1 1" gear="100"/></actuator></mujoco>"""
+BAND_1 = (np.array([-1.0]), np.array([1.0]))
+
+
+def _cartpole(integrator="Euler", other=""):
+    mjm = mujoco.MjModel.from_xml_string(CARTPOLE.format(integrator=integrator, other=other))
+    d = mujoco.MjData(mjm)
+    d.qpos[1], d.qvel[1] = np.deg2rad(21.0), 1.0
+    return mjm, Robot.from_model(mjm, v_max=1.0, a_max=2.0), d
+
+
+def test_other_rows_on_the_shielded_trees_are_found():
+    mjm, robot, _ = _cartpole()
+    assert robot.names == ("slider",) and other_rows_on_trees(mjm, robot)
+    # the hinge's own tree, not the cart's: its limit cannot reach the cart
+    apart = CARTPOLE.replace('<body><joint name="hinge"', '</body><body pos="2 0 0"><joint name="hinge"').replace(
+        "</body></body>\n    {other}", "</body>\n    {other}"
+    )
+    mjm2 = mujoco.MjModel.from_xml_string(apart.format(integrator="Euler", other=""))
+    assert not other_rows_on_trees(mjm2, Robot.from_model(mjm2, v_max=1.0, a_max=2.0))
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast"])
+def test_an_unshielded_joints_limit_is_corrected_like_a_contact(integrator):
+    """Brax's inverted pendulum broke the cart's limits without a contact or a saturation (415 of 3 200 adversarial
+    steps): its pole's hinge limit pushed the cart through ``M``, and only contacts were corrected."""
+    mjm, robot, d = _cartpole(integrator)
+    act = CActuation(robot, mjm)
+    _, M, f = act.smooth_stage(d, np.zeros(mjm.nu))
+    assert d.ncon == 0 and d.nefc == 1
+    v0 = d.qvel[0]
+    inv, out = act.finish_substep(d, M, f, np.array([0.5]), BAND_1)
+    r = (d.qvel[0] - v0) / mjm.opt.timestep
+    assert out is not None and out[0] > 10.0  # uncorrected: ~21.5 m/s^2 against a band of 1
+    assert abs(r - 1.0) < 1e-9 and not inv.saturated[0]
+
+    mjm, robot, d = _cartpole(integrator)
+    act = MjxActuation(robot, mjx.put_model(mjm))
+
+    @jax.jit
+    @jax.numpy_rank_promotion("allow")
+    def substep(d0):
+        d, M, f = act.smooth_stage(d0, d0.ctrl)
+        band = tuple(np.float32(b) for b in BAND_1)
+        dn, inv, out = act.finish_substep(d, M, f, np.float32([0.5]), band)
+        return (dn.qvel - d.qvel) / mjm.opt.timestep, out
+
+    r, out = jax.device_get(substep(mjx.put_data(mjm, d)))
+    assert out[0] > 10.0 and abs(r[0] - 1.0) < 1e-3
