@@ -1,7 +1,7 @@
 """Adversarial campaign of ``JointLimitShield`` on third-party Brax envs and the shipped servo arms.
 
 For each env (Brax ``pusher`` and ``reacher`` on MJX, the shipped position-servo Panda and UR5e
-``Reach``) and shield (viability, jerk where the MJCF has j_max, and ``none`` = unshielded through
+``Reach``; Brax ``hopper``, ``walker2d``, ``ant``, ``inverted_pendulum`` at ``v_max`` 3 rad/s) and shield (viability, jerk where the MJCF has j_max, and ``none`` = unshielded through
 the same code), ``shield_rollout`` runs the adversarial policies (targets/torques at the upper
 bounds, lower bounds, bang-bang, random) and counts violations at every physics substep. Prints a
 table and one JSON line.
@@ -29,10 +29,16 @@ ENVS = {
     "brax reacher": (lambda: brax.envs.get_environment("reacher", backend="mjx"), dict(v_max=4.0)),
     "servo Panda": (make_servo_panda_reach, {}),
     "UR5e": (make_ur5e_reach, {}),
+    # more of Brax's own envs (MJX, Euler): a planar or free base, feet on the floor; a cart under an unactuated pole
+    **{
+        f"brax {e}": (lambda e=e: brax.envs.get_environment(e, backend="mjx"), dict(v_max=3.0))
+        for e in ("hopper", "walker2d", "ant", "inverted_pendulum")
+    },
 }
 SHIELDS = {
     "brax pusher": ("viability", "none"),
     "brax reacher": ("viability", "none"),
+    **{f"brax {e}": ("viability", "none") for e in ("hopper", "walker2d", "ant", "inverted_pendulum")},
     "servo Panda": ("viability", "jerk", "none"),
     "UR5e": ("viability", "none"),
 }

@@ -421,7 +421,10 @@ class CActuation:
                 if ss > 0:
                     G = G + np.outer(y_ - G @ s_, s_) / ss
             prev = (dtau.copy(), r.copy())
-            step = np.linalg.solve(G, out)
+            try:
+                step = np.linalg.solve(G, out)
+            except np.linalg.LinAlgError:  # an exactly singular response: keep this pass
+                break
             if not np.all(np.isfinite(step)):
                 break
             dtau = dtau - step
