@@ -382,9 +382,10 @@ class CActuation:
         again from the same state (``mj_getState``/``mj_setState``) with the torque moved by the realised excess,
         through the response ``G`` (``contact_response``: the first stage's contacts, else the last stage's,
         else the smooth ``[M_eff^-1]_ss``; Broyden's update from the passes after), at most ``RK4_PASSES``
-        times (``inv``: the first pass's commands, for ``dtau``), keeping the best pass (a pass that is no better, e.g. saturated, ends it). Without contacts this
-        corrects RK4's own deviation from the held acceleration (``ctrl`` held over the stages; joint damping
-        fast against the substep: Gymnasium's Ant left the band by up to ~10 rad/s^2)."""
+        times (``inv``: the first pass's commands, for ``dtau``), keeping the best pass (a pass that is no
+        better, e.g. saturated, ends it). Without contacts this corrects RK4's own deviation from the held
+        acceleration (``ctrl`` held over the stages; joint damping fast against the substep: Gymnasium's Ant
+        left the band by up to ~10 rad/s^2)."""
         m, h = self.model, self.robot.timestep
         spec, state = _STATE, self._state
         mujoco.mj_getState(m, d, state, spec)
