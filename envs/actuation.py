@@ -158,17 +158,25 @@ def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=N
     return dtau, out, H_inv[:, dofs] @ dtau
 
 
+def tree_dof_mask(model, dof_adr) -> np.ndarray:
+    """``(nv,)`` bool: the dofs of the kinematic trees holding the dofs ``dof_adr`` (``model``: ``mujoco.MjModel``
+    or ``mjx.Model``). ``M`` is block-diagonal over trees: a constraint row touching none of them cannot move
+    those dofs."""
+    treeid = np.asarray(model.dof_treeid)
+    return np.isin(treeid, treeid[np.asarray(dof_adr)])
+
+
 def other_rows_on_trees(model, robot: Robot) -> bool:
     """Whether ``model`` (``mujoco.MjModel`` or ``mjx.Model``) has constraint rows, other than contacts and the
     shielded joints' own limit rows, that can act on the shielded joints' kinematic trees: an unshielded limited
     joint there (Brax's inverted pendulum: its pole's hinge, coupled to the shielded cart through ``M``), an
     equality, friction loss on a tree dof, a limited tendon. The substep's correction then runs as for a
     contact (static: decided once per model)."""
-    trees = np.unique(np.asarray(model.dof_treeid)[np.asarray(robot.dof_adr)])
-    jnt_tree = np.asarray(model.dof_treeid)[np.asarray(model.jnt_dofadr)]
-    shielded = np.isin(np.arange(len(jnt_tree)), np.asarray(robot.joint_ids))
-    limited = np.asarray(model.jnt_limited).astype(bool) & ~shielded & np.isin(jnt_tree, trees)
-    friction = np.asarray(model.dof_frictionloss)[np.isin(np.asarray(model.dof_treeid), trees)] > 0
+    on_trees = tree_dof_mask(model, robot.dof_adr)
+    jnt_on_trees = on_trees[np.asarray(model.jnt_dofadr)]
+    shielded = np.isin(np.arange(len(jnt_on_trees)), np.asarray(robot.joint_ids))
+    limited = np.asarray(model.jnt_limited).astype(bool) & ~shielded & jnt_on_trees
+    friction = np.asarray(model.dof_frictionloss)[on_trees] > 0
     return bool(limited.any() or int(model.neq) or friction.any() or np.asarray(model.tendon_limited).any())
 
 
@@ -304,9 +312,8 @@ class CActuation:
         self._act = as_slice(robot.actuator_ids)
         self._dofs = self._arrays[0]
         self._qadr = as_slice(robot.qpos_adr)
-        # the dofs of the kinematic trees holding the shielded joints: M is block-diagonal over trees, so a
-        # constraint row touching none of these cannot move the shielded dofs
-        self._tree_dofs = as_slice(np.flatnonzero(np.isin(model.dof_treeid, model.dof_treeid[self._dofs])))
+        # the dofs of the kinematic trees holding the shielded joints (a row touching none cannot move them)
+        self._tree_dofs = as_slice(np.flatnonzero(tree_dof_mask(model, robot.dof_adr)))
 
     def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray, want_a_des: bool = True):
         """As ``MjxActuation.smooth_stage`` (``d`` is changed in place) and ``asked_acceleration``; returns
@@ -350,31 +357,35 @@ class CActuation:
         q, v = d.qpos[self._qadr], d.qvel[self._dofs]
         ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled)
         d.ctrl[self._act] = ctrl
-        out, dtau, G = None, np.zeros_like(v), None
+        out, dtau, rows = None, np.zeros_like(v), None
         if band is not None and (d.ncon or self._other_rows) and self._rows_touch_trees(d):
             mujoco.mj_fwdActuation(m, d)
             mujoco.mj_fwdAcceleration(m, d)
             mujoco.mj_fwdConstraint(m, d)
             qfrc = d.qfrc_smooth + d.qfrc_constraint
             r = np.linalg.solve(M_eff, qfrc)[self._dofs]
-            J, D_active = self._efc_jacobian(d), self._efc_d_active(d)
-            if self._rk4:
-                G = contact_response(np, self._dofs, self._full_m(d), M_eff, J, D_active)[0]
-            if np.any((r < band[0]) | (r > band[1])):
-                dtau, out, dqacc = contact_correction(np, self._dofs, self._full_m(d), M_eff, J, D_active, qfrc, band)
+            outside = np.any((r < band[0]) | (r > band[1]))
+            if outside or self._rk4:
+                # the start's constraint rows (a copy of efc_J for RK4: the step overwrites it, and a retake may
+                # need their response, _rk4_step_in_band)
+                J = self._efc_jacobian(d)
+                rows = (self._full_m(d), J.copy() if self._rk4 else J, self._efc_d_active(d))
+            if outside:
+                M_full, J, D_active = rows
+                dtau, out, dqacc = contact_correction(np, self._dofs, M_full, M_eff, J, D_active, qfrc, band)
                 d.qacc_warmstart[:] = d.qacc + dqacc
                 ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
                 d.ctrl[self._act] = ctrl
         if self._rk4 and band is not None:
             inv = Inversion(ctrl, excess, sat)
-            return self._rk4_step_in_band(d, M_eff, f_other, a, q, v, band, dtau, G, rk4_tol, inv), out
+            return self._rk4_step_in_band(d, M_eff, f_other, a, q, v, band, dtau, rows, rk4_tol, inv), out
         if self._rk4:
             mujoco.mj_step(m, d)
         else:
             mujoco.mj_step2(m, d)
         return Inversion(ctrl, excess, sat), out
 
-    def _rk4_step_in_band(self, d: mujoco.MjData, M_eff, f_other, a, q, v, band, dtau, G, rk4_tol, inv) -> Inversion:
+    def _rk4_step_in_band(self, d: mujoco.MjData, M_eff, f_other, a, q, v, band, dtau, rows, rk4_tol, inv) -> Inversion:
         """An RK4 substep with a band. RK4 holds ``ctrl`` over four stages whose constraint forces differ from the
         first stage's (the one the correction solved; a contact may even start within the substep), so the step
         is taken and its realised acceleration ``(v+ - v) / h`` read; where that left the band by more than
@@ -382,7 +393,8 @@ class CActuation:
         again from the same state (``mj_getState``/``mj_setState``) with the torque moved by the realised excess,
         through the response ``G`` (``contact_response``: the first stage's contacts, else the last stage's,
         else the smooth ``[M_eff^-1]_ss``; Broyden's update from the passes after), at most ``RK4_PASSES``
-        times (``inv``: the first pass's commands, for ``dtau``), keeping the best pass (a pass that is no
+        times (``inv``: the first pass's commands, for ``dtau``; ``rows``: ``(M, efc_J, D_active)`` of the first
+        stage's constraint rows on the shielded trees, or ``None``; ``G`` is formed only for a retake), keeping the best pass (a pass that is no
         better, e.g. saturated, ends it). Without contacts this corrects RK4's own deviation from the held
         acceleration (``ctrl`` held over the stages; joint damping fast against the substep: Gymnasium's Ant
         left the band by up to ~10 rad/s^2)."""
@@ -391,7 +403,7 @@ class CActuation:
         mujoco.mj_getState(m, d, state, spec)
         lo, hi = band
         v = v.copy()
-        best = prev = tol = None
+        best = prev = tol = G = None
         for k in range(RK4_PASSES + 1):
             d.ctrl[self._act] = inv.ctrl
             mujoco.mj_step(m, d)
@@ -410,7 +422,9 @@ class CActuation:
             best = (err, inv)
             if k == RK4_PASSES or not np.any(np.abs(out) > tol):
                 break
-            if G is None and d.ncon and self._rows_touch_trees(d):  # a contact began within the substep
+            if G is None and rows is not None:  # the first stage's constraint rows
+                G = contact_response(np, self._dofs, rows[0], M_eff, rows[1], rows[2])[0]
+            elif G is None and d.ncon and self._rows_touch_trees(d):  # a contact began within the substep
                 M_end = self._full_m(d)
                 M_eff_end = M_end + np.diag(self._damping)
                 G = contact_response(np, self._dofs, M_end, M_eff_end, self._efc_jacobian(d), self._efc_d_active(d))[0]

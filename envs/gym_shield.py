@@ -177,6 +177,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         self._q_hi = np.where(rob.limited, np.asarray(lim.q_max, np.float64), np.inf)
         self._v_max = np.broadcast_to(np.asarray(lim.v_max, np.float64), (n,)).copy()
         self._h = float(rob.timestep)
+        # an RK4 substep is retaken beyond RK4_RESTEP RK4_MARGIN v_max / dt [rad/s^2] (dt = h n_frames)
+        self._rk4_tol = RK4_RESTEP * RK4_MARGIN * self._v_max / self._h
         # solver roundoff at the bounds is not counted as a contact correction
         self._correct_tol = BOUNDS_TOL * np.broadcast_to(np.asarray(lim.a_max, np.float64), (n,))
         self._joint_ids = np.asarray(rob.joint_ids)
@@ -260,7 +262,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
         band = None if not self.correct_contacts else (np.minimum(lower, a_safe), np.maximum(upper, a_safe))
 
-        rk4_tol = RK4_RESTEP * RK4_MARGIN * self._v_max / (self._h * n_frames)
+        rk4_tol = self._rk4_tol / n_frames
         V[0] = d.qvel[dofs]
         corrected = 0.0
         disturbed = False
