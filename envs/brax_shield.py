@@ -88,18 +88,45 @@ _SYNCED_FIELDS = (
     "dof_damping",
     "dof_armature",
 )
+# the options a Brax env may have changed on ``sys.opt`` (``ant`` and ``humanoid`` on MJX disable Euler's implicit
+# damping and run one solver iteration): the robot's integrator model is read from them (``Robot.implicit_damping``)
+_SYNCED_OPTIONS = (
+    "integrator",
+    "disableflags",
+    "enableflags",
+    "cone",
+    "solver",
+    "iterations",
+    "ls_iterations",
+    "tolerance",
+    "ls_tolerance",
+    "impratio",
+    "gravity",
+    "wind",
+    "magnetic",
+    "density",
+    "viscosity",
+)
 
 
 def _mj_model_of(sys):
-    """A copy of the ``MjModel`` a Brax ``System`` was built from, with the fields Brax envs edit on the
-    System (e.g. ``pusher``'s gear for other backends) read back from it."""
+    """A copy of the ``MjModel`` a Brax ``System`` was built from, with the fields and options Brax envs edit on
+    the System (e.g. ``pusher``'s gear for other backends, ``ant``'s ``opt.disableflags``) read back from it."""
     mjm = getattr(sys, "mj_model", None)
     if mjm is None:
         raise TypeError("the env's System has no mj_model (built without brax.io.mjcf?)")
     mjm = mjm.__copy__()
     for name in _SYNCED_FIELDS:
         getattr(mjm, name)[:] = np.asarray(getattr(sys, name))
-    mjm.opt.timestep = float(sys.opt.timestep)
+    mjm.opt.timestep = float(sys.opt.timestep)  # the step MJX takes (float32)
+    for name in _SYNCED_OPTIONS:
+        value = np.asarray(getattr(sys.opt, name))
+        if np.array_equal(np.asarray(getattr(mjm.opt, name)).astype(value.dtype), value):
+            continue  # unchanged (kept in float64: the System holds float32 copies)
+        if value.ndim:
+            getattr(mjm.opt, name)[:] = value
+        else:
+            setattr(mjm.opt, name, value.item())
     return mjm
 
 

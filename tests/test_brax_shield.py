@@ -17,6 +17,7 @@ with warnings.catch_warnings():
     import brax.envs
 
 from jaxlimits.envs import JointLimitShield
+from jaxlimits.envs.actuation import MJX_CORRECTION_PASSES, MJX_MIN_SOLVER_ITERATIONS
 from jaxlimits.envs.adversarial import inside_reset, shield_rollout
 from jaxlimits.envs.reach import make_servo_panda_reach
 
@@ -98,6 +99,39 @@ def test_brax_pusher_exact_without_contacts():
     r = shield_rollout(env, BATCH, STEPS, reset=inside_reset(env))
     assert r["count/position"] == 0 and r["count/velocity"] == 0 and r["count/disturbance"] == 0, r
     assert r["max/accel_error"] < 1e-3
+
+
+def test_options_a_brax_env_sets_on_its_system_reach_the_robot_and_the_substeps():
+    """Brax ``ant`` on MJX disables Euler's implicit damping and runs one solver iteration, on its System (not its
+    MjModel): the robot models the damping as MJX integrates it (explicitly; before, the shield inverted with
+    ``M + h D`` and missed the acceleration by ~1 %), and the shielded substeps solve the contacts with at least
+    ``MJX_MIN_SOLVER_ITERATIONS``, correcting twice (a floating base); the env's own System is unchanged. A
+    fixed-base arm (``pusher``) keeps its solver and one pass. (Violations: ``benchmarks/shield_adversarial.py
+    --env "brax ant"``; ``test_brax_ant_under_contacts_never_violates``, extended.)"""
+    env = brax.envs.get_environment("ant", backend="mjx")
+    assert int(env.sys.opt.iterations) == 1 and int(env.sys.mj_model.opt.disableflags) == 0  # the premise
+    shield = JointLimitShield(env, v_max=3.0)
+    assert np.all(env.sys.mj_model.dof_damping[shield.robot.dof_adr] > 0)
+    assert np.all(shield.robot.implicit_damping == 0.0)
+    assert int(shield.actuation.sys.opt.iterations) == MJX_MIN_SOLVER_ITERATIONS
+    assert int(env.sys.opt.iterations) == 1
+    assert shield.robot.coupled and shield.actuation._passes == MJX_CORRECTION_PASSES
+    pusher = _shield_pusher(_pusher())
+    assert int(pusher.actuation.sys.opt.iterations) == int(pusher.env.sys.opt.iterations) == 20
+    assert pusher.actuation._passes == 1
+    assert np.all(pusher.robot.implicit_damping[pusher.robot.dof_adr] > 0)  # Euler's implicit damping, on
+
+
+@pytest.mark.extended  # a second locomotion MJX compile (~1 min); the campaign runs it at 10^5 per row
+def test_brax_ant_under_contacts_never_violates():
+    counts = {}
+    for method in ("viability", "none"):
+        env = JointLimitShield(brax.envs.get_environment("ant", backend="mjx"), v_max=3.0, method=method)
+        counts[method] = shield_rollout(env, 32, STEPS, reset=inside_reset(env))
+    s = counts["viability"]
+    assert s["count/disturbance"] > 0  # the feet's contacts act on the legs
+    assert s["count/position"] == 0 and s["count/velocity"] == 0, s
+    assert counts["none"]["count/position"] > 0, counts["none"]
 
 
 def _upper_targets(env, step, steps=300, nan_every=0):

@@ -158,6 +158,27 @@ def test_the_torque_box_moves_the_correction_to_the_joints_that_can_give_it(x64)
     np.testing.assert_allclose(np.asarray(dtau), [-0.1, 0.1], atol=1e-6)  # the box holds: its corner nearest the band
 
 
+def test_the_inset_aims_a_pushed_dof_inside_the_band_and_leaves_roundoff_at_the_edge(x64):
+    """``contact_correction(..., inset=)`` (MJX's float32 passes): a dof pushed out by more than the inset is aimed
+    the inset inside the band's edge (the residual of an inexact solve then stays inside); one out by less
+    (roundoff at the decision's own edge) is brought to the edge as without it; ``out`` is measured from the edge
+    either way; a band narrower than two insets is aimed at its middle."""
+    import jax.numpy as jnp
+
+    from jaxlimits.envs.actuation import contact_correction
+
+    M, J, D = jnp.eye(3), jnp.zeros((1, 3)), jnp.zeros(1)  # no active row: G = I
+    dofs = np.arange(3)
+    band = (jnp.array([-1.0, -1.0, 0.0]), jnp.array([1.0, 1.0, 0.01]))
+    qfrc = jnp.array([3.0, -1.0 - 1e-7, 0.5])  # dof 0 pushed 2 over, dof 1 1e-7 under, dof 2 over a narrow band
+    inset = jnp.full(3, 0.05)
+    dtau, out, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, inset=inset)
+    np.testing.assert_allclose(out, [2.0, -1e-7, 0.49], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(qfrc) + np.asarray(dtau), [0.95, -1.0, 0.005], atol=1e-12)
+    plain, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band)
+    np.testing.assert_allclose(np.asarray(qfrc) + np.asarray(plain), [1.0, -1.0, 0.01], atol=1e-12)
+
+
 # a cart (the shielded slide) under a pole whose hinge (not shielded, no actuator) is pressed 1 degree past its
 # 20 degree limit: the limit's constraint force acts on the hinge and, through M, on the cart, with no contact
 CARTPOLE = """<mujoco><option timestep="0.01" integrator="{integrator}"/>

@@ -18,7 +18,7 @@ do reach the limits (a campaign whose unshielded rows were clean would prove not
 
 Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
-cap, the same cap anticipating braking, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher`` and ``pusher`` under
+cap, the same cap anticipating braking, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher``, ``pusher``, ``ant`` and ``hopper`` under
 ``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none), whose metrics ``EvaluatorMetrics``
 renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env; and Gymnasium's
 ``Reacher-v5`` and ``Pusher-v5`` under ``JointLimitShieldWrapper`` (viability, none; ``campaign_gym``), the same
@@ -191,6 +191,13 @@ TARGETS = {
     "brax pusher": Target(
         "brax pusher", _third_party(_brax("pusher"), inside=True, v_max=2.0), ("viability", "none"), **_SHIELD_MEASURES
     ),
+    # Brax's own locomotion envs: a floating (ant) or planar (hopper) base on its feet, started inside the ranges
+    **{
+        f"brax {name}": Target(
+            f"brax {name}", _third_party(_brax(name), inside=True, v_max=3.0), ("viability", "none"), **_SHIELD_MEASURES
+        )
+        for name in ("ant", "hopper")
+    },
     **GYM_TARGETS,  # Gymnasium's Reacher-v5 and Pusher-v5 (GymTarget: C MuJoCo, one env at a time)
 }
 
