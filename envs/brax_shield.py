@@ -88,6 +88,10 @@ _SYNCED_FIELDS = (
     "dof_damping",
     "dof_armature",
 )
+# fields a user (e.g. a domain randomisation) may have changed on the System: the robot's braking capacity (masses),
+# its spring model and the rows the correction covers (friction loss) read them; read back only where they differ
+# beyond the System's float32 copy
+_SYNCED_IF_CHANGED = ("body_mass", "body_inertia", "body_ipos", "dof_frictionloss", "jnt_stiffness", "qpos_spring")
 # the options a Brax env may have changed on ``sys.opt`` (``ant`` and ``humanoid`` on MJX disable Euler's implicit
 # damping and run one solver iteration): the robot's integrator model is read from them (``Robot.implicit_damping``)
 _SYNCED_OPTIONS = (
@@ -111,7 +115,8 @@ _SYNCED_OPTIONS = (
 
 def _mj_model_of(sys):
     """A copy of the ``MjModel`` a Brax ``System`` was built from, with the fields and options Brax envs edit on
-    the System (e.g. ``pusher``'s gear for other backends, ``ant``'s ``opt.disableflags``) read back from it."""
+    the System (e.g. ``pusher``'s gear for other backends, ``ant``'s ``opt.disableflags``) read back from it, and
+    the masses, springs and friction loss where the System's differ (``_SYNCED_IF_CHANGED``)."""
     mjm = getattr(sys, "mj_model", None)
     if mjm is None:
         raise TypeError("the env's System has no mj_model (built without brax.io.mjcf?)")
@@ -119,14 +124,16 @@ def _mj_model_of(sys):
     for name in _SYNCED_FIELDS:
         getattr(mjm, name)[:] = np.asarray(getattr(sys, name))
     mjm.opt.timestep = float(sys.opt.timestep)  # the step MJX takes (float32)
-    for name in _SYNCED_OPTIONS:
-        value = np.asarray(getattr(sys.opt, name))
-        if np.array_equal(np.asarray(getattr(mjm.opt, name)).astype(value.dtype), value):
+    changed = [(mjm, name, getattr(sys, name)) for name in _SYNCED_IF_CHANGED]
+    changed += [(mjm.opt, name, getattr(sys.opt, name)) for name in _SYNCED_OPTIONS]
+    for owner, name, value in changed:
+        value = np.asarray(value)
+        if np.array_equal(np.asarray(getattr(owner, name)).astype(value.dtype), value):
             continue  # unchanged (kept in float64: the System holds float32 copies)
         if value.ndim:
-            getattr(mjm.opt, name)[:] = value
+            getattr(owner, name)[:] = value
         else:
-            setattr(mjm.opt, name, value.item())
+            setattr(owner, name, value.item())
     return mjm
 
 

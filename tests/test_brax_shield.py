@@ -18,6 +18,7 @@ with warnings.catch_warnings():
 
 from jaxlimits.envs import JointLimitShield
 from jaxlimits.envs.actuation import MJX_CORRECTION_PASSES, MJX_MIN_SOLVER_ITERATIONS
+from jaxlimits.envs.brax_shield import _mj_model_of
 from jaxlimits.envs.adversarial import inside_reset, shield_rollout
 from jaxlimits.envs.reach import make_servo_panda_reach
 
@@ -106,7 +107,8 @@ def test_options_a_brax_env_sets_on_its_system_reach_the_robot_and_the_substeps(
     MjModel): the robot models the damping as MJX integrates it (explicitly; before, the shield inverted with
     ``M + h D`` and missed the acceleration by ~1 %), and the shielded substeps solve the contacts with at least
     ``MJX_MIN_SOLVER_ITERATIONS``, correcting twice (a floating base); the env's own System is unchanged. A
-    fixed-base arm (``pusher``) keeps its solver and one pass. (Violations: ``benchmarks/shield_adversarial.py
+    fixed-base arm (``pusher``) keeps its solver and one pass. Masses changed on a System reach the robot's model.
+    (Violations: ``benchmarks/shield_adversarial.py
     --env "brax ant"``; ``test_brax_ant_under_contacts_never_violates``, extended.)"""
     env = brax.envs.get_environment("ant", backend="mjx")
     assert int(env.sys.opt.iterations) == 1 and int(env.sys.mj_model.opt.disableflags) == 0  # the premise
@@ -120,6 +122,13 @@ def test_options_a_brax_env_sets_on_its_system_reach_the_robot_and_the_substeps(
     assert int(pusher.actuation.sys.opt.iterations) == int(pusher.env.sys.opt.iterations) == 20
     assert pusher.actuation._passes == 1
     assert np.all(pusher.robot.implicit_damping[pusher.robot.dof_adr] > 0)  # Euler's implicit damping, on
+    # masses changed on the System (a domain randomisation) reach the model the robot is built from; unchanged
+    # fields keep the MjModel's float64 values
+    reacher = brax.envs.get_environment("reacher", backend="mjx")
+    reacher.sys = reacher.sys.tree_replace({"body_mass": reacher.sys.body_mass * 4.0})
+    mjm = _mj_model_of(reacher.sys)
+    np.testing.assert_allclose(mjm.body_mass, 4.0 * reacher.sys.mj_model.body_mass, rtol=1e-6)
+    assert np.array_equal(mjm.body_inertia, reacher.sys.mj_model.body_inertia)
 
 
 @pytest.mark.extended  # a second locomotion MJX compile (~1 min); the campaign runs it at 10^5 per row
