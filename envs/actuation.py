@@ -27,9 +27,10 @@ constraints' own response: one Newton step on the solver's piecewise-quadratic p
     dr = G dtau,   G = M_eff^-1 M H^-1,   H = M + J^T diag(D active) J      (restricted to the shielded dofs),
 
 exact while the active constraint rows do not change (the solver's Hessian, as MJX's Newton solver
-forms it); then the substep is solved again with the corrected ctrl and integrated (MJX, where the shielded joints share a tree with unshielded dofs (a floating
-or planar base): twice, ``MJX_CORRECTION_PASSES``, the second pass from the rows the first one's torque
-made or broke; elsewhere, and in C MuJoCo, once). Brax's ``ant`` and ``humanoid`` run MJX's solver for one
+forms it); then the substep is solved again with the corrected ctrl and integrated (MJX, where the
+shielded joints share a tree with unshielded dofs, a floating or planar base: twice,
+``MJX_CORRECTION_PASSES``, the second pass from the rows the first one's torque made or broke; elsewhere,
+and in C MuJoCo, once). Brax's ``ant`` and ``humanoid`` run MJX's solver for one
 iteration, whose answer does not respond to torque as the converged one: the shielded substeps run at
 least ``MJX_MIN_SOLVER_ITERATIONS`` (Brax ``ant``, 3 200 adversarial env-steps: 1 012 position-violating
 steps with one pass at the env's one iteration, 318 with two passes, 54 at four iterations and one pass, 0
@@ -290,10 +291,10 @@ class MjxActuation:
 
         Returns ``(d, inversion, out)``: ``out`` the excess of the uncorrected realised acceleration over
         the band [rad/s^2] (``(n,)``, zeros without correction). ``MJX_CORRECTION_PASSES`` corrections, each
-        from the last solve's rows, aimed ``MJX_CORRECTION_INSET`` a_max inside the band, where ``robot.coupled`` (a floating or planar base: its feet's contact rows
-        change with the torque), else one (a fixed base: Brax ``pusher``'s strikes are saturations a second
-        pass does not fix, 18 -> 16 violating steps of 3 200, at +40 % of its step at batch 256: under ``vmap``
-        every member pays every pass).
+        from the last solve's rows, aimed ``MJX_CORRECTION_INSET`` a_max inside the band, where
+        ``robot.coupled`` (a floating or planar base: its feet's contact rows change with the torque), else one
+        (a fixed base: Brax ``pusher``'s strikes are saturations a second pass does not fix, 18 -> 16 violating
+        steps of 3 200, at +40 % of its step at batch 256: under ``vmap`` every member pays every pass).
         """
         dofs = self._arrays[0]
         q, v = d.qpos[self.robot.qpos_adr], d.qvel[dofs]
@@ -318,7 +319,8 @@ class MjxActuation:
                 step, out_k, dqacc = contact_correction(
                     jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band, inset=inset
                 )
-                out = out_k if k == 0 else out
+                if k == 0:  # the push as the shield's ctrl met it (the metric); later passes correct its residual
+                    out = out_k
                 dtau = dtau + step
                 inv = invert(dtau)
                 # warm-started at the predicted answer: the solver's loop (run until a batch's slowest member is
@@ -434,10 +436,10 @@ class CActuation:
         through the response ``G`` (``contact_response``: the first stage's contacts, else the last stage's,
         else the smooth ``[M_eff^-1]_ss``; Broyden's update from the passes after), at most ``RK4_PASSES``
         times (``inv``: the first pass's commands, for ``dtau``; ``rows``: ``(M, efc_J, D_active)`` of the first
-        stage's constraint rows on the shielded trees, or ``None``; ``G`` is formed only for a retake), keeping the best pass (a pass that is no
-        better, e.g. saturated, ends it). Without contacts this corrects RK4's own deviation from the held
-        acceleration (``ctrl`` held over the stages; joint damping fast against the substep: Gymnasium's Ant
-        left the band by up to ~10 rad/s^2)."""
+        stage's constraint rows on the shielded trees, or ``None``; ``G`` is formed only for a retake), keeping
+        the best pass (a pass that is no better, e.g. saturated, ends it). Without contacts this corrects RK4's
+        own deviation from the held acceleration (``ctrl`` held over the stages; joint damping fast against the
+        substep: Gymnasium's Ant left the band by up to ~10 rad/s^2)."""
         m, h = self.model, self.robot.timestep
         spec, state = _STATE, self._state
         mujoco.mj_getState(m, d, state, spec)
