@@ -48,6 +48,7 @@ Two implementations of the same formula: ``MjxActuation`` (JAX, MJX data; for Br
 
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple
 
 import jax
@@ -57,7 +58,7 @@ import numpy as np
 from mujoco import mjx
 
 import jaxlimits as jl
-from jaxlimits.envs.robot import Robot, shrink, torque_range
+from jaxlimits.envs.robot import _BIAS_AFFINE, Robot, _implicit_damping, _rk4_stiffness, shrink, torque_range
 
 
 class Inversion(NamedTuple):
@@ -121,6 +122,27 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None)
     saturated = (ctrl != ctrl_needed) | (force != force_free)
     excess = xp.where(saturated, xp.abs(gear * (force_needed - force)), 0.0)
     return ctrl, excess, saturated
+
+
+def read_actuators(xp, robot: Robot, structure, values, dtype):
+    """``(gear, gain, bias, ctrl_range, force_range)`` of the robot's actuators (as ``Robot``'s fields) with their
+    values read from ``values`` (a ``mujoco.MjModel`` or a Brax ``System``, whose values a domain randomisation may
+    have changed: traced under ``vmap``) and which of them have an affine bias from ``structure`` (the model the
+    robot was read from). Limited ranges as the robot's (``±inf`` where not limited)."""
+    act = np.asarray(robot.actuator_ids)
+    affine = np.asarray(structure.actuator_biastype)[act] == _BIAS_AFFINE
+    unbounded = np.array([-np.inf, np.inf], dtype)
+
+    def ranged(field, limited):
+        return xp.where(limited[:, None], xp.asarray(field, dtype)[act], unbounded)
+
+    return (
+        xp.asarray(values.actuator_gear, dtype)[act, 0],
+        xp.asarray(values.actuator_gainprm, dtype)[act, 0],
+        xp.where(affine[:, None], xp.asarray(values.actuator_biasprm, dtype)[act, :3], 0.0),
+        ranged(values.actuator_ctrlrange, np.isfinite(robot.ctrl_range).all(axis=1)),
+        ranged(values.actuator_forcerange, np.isfinite(robot.force_range).all(axis=1)),
+    )
 
 
 def contact_response(xp, dofs, M, M_eff, J, D_active):
@@ -208,6 +230,13 @@ MJX_CORRECTION_INSET = 1e-4
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
+def _with_min_iterations(sys):
+    """``sys`` with ``opt.iterations`` raised to ``MJX_MIN_SOLVER_ITERATIONS`` where it is lower."""
+    if int(sys.opt.iterations) < MJX_MIN_SOLVER_ITERATIONS:
+        return sys.tree_replace({"opt.iterations": MJX_MIN_SOLVER_ITERATIONS})
+    return sys
+
+
 class MjxActuation:
     """The substep pieces of ``mjx.step`` with the shielded actuators' ``ctrl`` set between the velocity
     and the actuation stages (Euler, implicitfast, RK4: the model's own integrator). ``sys.opt.iterations``
@@ -215,9 +244,8 @@ class MjxActuation:
 
     def __init__(self, robot: Robot, sys):
         self.robot = robot
-        if int(sys.opt.iterations) < MJX_MIN_SOLVER_ITERATIONS:
-            sys = sys.tree_replace({"opt.iterations": MJX_MIN_SOLVER_ITERATIONS})
-        self.sys = sys
+        self._given = self._structure = sys
+        self.sys = _with_min_iterations(sys)
         f32 = np.float32
         self._arrays = (
             np.asarray(robot.dof_adr),
@@ -240,6 +268,24 @@ class MjxActuation:
             int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST): mjx.implicit,
             int(mujoco.mjtIntegrator.mjINT_RK4): mjx.rungekutta4,
         }[integ]
+
+    def with_system(self, sys) -> "MjxActuation":
+        """This actuation over ``sys``, the System the env steps with now: ``self`` where it is the one given at
+        construction, else a copy whose substeps run ``sys`` (iterations raised as in ``__init__``) and whose
+        actuator gains, ranges, implicit damping and RK4 stiffness are read from it (traced values under Brax's
+        ``DomainRandomizationVmapWrapper``, which sets a randomised System on the innermost env inside its
+        ``vmap``; before, the shielded substeps ran the System captured at construction and a domain randomisation
+        reached neither the physics nor the shield). The structure (which actuators, the integrator, the static
+        choice of ``other_rows_on_trees``) and the robot's limits stay those of construction."""
+        if sys is self._given:
+            return self
+        new = copy.copy(self)
+        new._given, new.sys = sys, _with_min_iterations(sys)
+        new._arrays = self._arrays[:2] + read_actuators(jnp, self.robot, self._structure, sys, jnp.float32)
+        h = self.robot.timestep
+        new._damping = (h * _implicit_damping(self._structure, sys, jnp)).astype(jnp.float32)
+        new._stiff = (0.5 * h * _rk4_stiffness(self._structure, sys, jnp)).astype(jnp.float32)
+        return new
 
     def smooth_stage(self, d, ctrl):
         """Positions, velocities, actuation and smooth acceleration at ``d``'s state with the env's ``ctrl``.
@@ -344,6 +390,7 @@ class CActuation:
             robot.ctrl_range,
             robot.force_range,
         )
+        self._structure = mujoco.MjModel.__copy__(model)  # which actuators have a bias, the integrator, the flags
         self._damping = robot.timestep * robot.implicit_damping
         self._stiff = 0.5 * robot.timestep * robot.rk4_stiffness
         self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
@@ -356,6 +403,16 @@ class CActuation:
         self._qadr = as_slice(robot.qpos_adr)
         # the dofs of the kinematic trees holding the shielded joints (a row touching none cannot move them)
         self._tree_dofs = as_slice(np.flatnonzero(tree_dof_mask(model, robot.dof_adr)))
+
+    def refresh(self) -> None:
+        """Re-read the actuators' gains, bias, ranges, the implicit damping and the RK4 stiffness from the live
+        ``model`` (a domain randomisation that changes them between episodes; the wrapper calls this at every
+        ``reset``). Masses and armature need nothing: ``M`` is the live model's at every substep. The robot's limits,
+        ``a_max`` included, stay those of construction."""
+        m, h = self.model, self.robot.timestep
+        self._arrays = self._arrays[:2] + read_actuators(np, self.robot, self._structure, m, np.float64)
+        self._damping = h * _implicit_damping(self._structure, m)
+        self._stiff = 0.5 * h * _rk4_stiffness(self._structure, m)
 
     def smooth_stage(self, d: mujoco.MjData, ctrl: np.ndarray, want_a_des: bool = True):
         """As ``MjxActuation.smooth_stage`` (``d`` is changed in place) and ``asked_acceleration``; returns
@@ -376,7 +433,7 @@ class CActuation:
         M_eff[self._diag] += self._damping
         f_env = d.qfrc_smooth.copy()
         f_other = f_env.copy()
-        f_other[self._dofs] -= self.robot.gear * d.actuator_force[self._act]
+        f_other[self._dofs] -= self._arrays[2] * d.actuator_force[self._act]
         if self._rk4:
             f_other -= self._stiff * d.qvel
         a_des = np.linalg.solve(M_eff, f_env)[self._dofs] if want_a_des else None

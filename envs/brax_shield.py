@@ -5,7 +5,15 @@
 What it takes over: the env's physics call. The wrapped env's own ``step`` runs unchanged (its
 action scaling, reward, observation, termination) up to ``self.pipeline_step(pipeline_state, ctrl)``;
 the shield replaces that method on the innermost env (an instance attribute shadowing
-``PipelineEnv.pipeline_step``) by ``_shielded_pipeline_step``, which:
+``PipelineEnv.pipeline_step``) by ``_shielded_pipeline_step``, and the innermost env's ``step`` and ``reset``
+by ``_shielded_step``/``_shielded_reset`` (the env's own, plus the shield's ``info``/``metrics``), so the
+shield runs however the env is reached: Brax's ``DomainRandomizationVmapWrapper`` (the trainers'
+``randomization_fn``) calls the innermost env's ``step``/``reset`` directly, past the wrappers in between
+(a ``NonFiniteActionGuard`` acts at the innermost env too; other wrappers in between do not run), and sets each
+member's System on it: the substeps run that System, and the
+actuators' gains, ranges, damping are read from it (``MjxActuation.with_system``; the robot's limits,
+``a_max`` included, stay those of the System given at construction, so a randomised robot too weak for them
+saturates, counted). ``_shielded_pipeline_step``:
 
 1. runs the first substep's position/velocity/actuation stages with the env's ``ctrl`` and reads the
    joint acceleration that ``ctrl`` asks for (``MjxActuation.asked_acceleration``: for a servo, its
@@ -89,9 +97,19 @@ _SYNCED_FIELDS = (
     "dof_armature",
 )
 # fields a user (e.g. a domain randomisation) may have changed on the System: the robot's braking capacity (masses),
-# its spring model and the rows the correction covers (friction loss) read them; read back only where they differ
-# beyond the System's float32 copy
-_SYNCED_IF_CHANGED = ("body_mass", "body_inertia", "body_ipos", "dof_frictionloss", "jnt_stiffness", "qpos_spring")
+# its spring model, the rows the correction covers (friction loss) and its actuator types read them; read back only
+# where they differ beyond the System's float32 copy
+_SYNCED_IF_CHANGED = (
+    "body_mass",
+    "body_inertia",
+    "body_ipos",
+    "dof_frictionloss",
+    "jnt_stiffness",
+    "qpos_spring",
+    "actuator_biastype",  # which actuators the robot supports and inverts (a motor made a servo on the System)
+    "actuator_gaintype",
+    "actuator_dyntype",
+)
 # the options a Brax env may have changed on ``sys.opt`` (``ant`` and ``humanoid`` on MJX disable Euler's implicit
 # damping and run one solver iteration): the robot's integrator model is read from them (``Robot.implicit_damping``)
 _SYNCED_OPTIONS = (
@@ -212,7 +230,12 @@ class JointLimitShield(Wrapper):
         self._pending = None
         self._outputs = None
         base._shielded_by = self
-        base.pipeline_step = self._shielded_pipeline_step  # the one thing taken over
+        base.pipeline_step = self._shielded_pipeline_step  # the physics call
+        # and the env's own step and reset, so the shield runs however the env is reached: Brax's
+        # DomainRandomizationVmapWrapper (``randomization_fn`` of its trainers) calls the innermost env's step and
+        # reset (``env.unwrapped``) inside its vmap, past every wrapper in between, this one too
+        self._env_step, self._env_reset = base.step, base.reset
+        base.step, base.reset = self._shielded_step, self._shielded_reset
 
     @property
     def limits(self):
@@ -223,9 +246,9 @@ class JointLimitShield(Wrapper):
     @_mjx_tracing
     def _shielded_pipeline_step(self, pipeline_state, ctrl):
         if self._pending is None:
-            raise RuntimeError("pipeline_step of a shielded env was called outside JointLimitShield.step")
+            raise RuntimeError("pipeline_step of a shielded env was called outside the env's step")
         a_prev, replaced = self._pending  # replaced: a NonFiniteActionGuard outside zeroed a non-finite action
-        rob, act = self.robot, self.actuation
+        rob, act = self.robot, self.actuation.with_system(self._base.sys)  # a domain randomisation's System
         dofs, qadr = np.asarray(rob.dof_adr), np.asarray(rob.qpos_adr)
         finite = jnp.isfinite(ctrl)
         ctrl_clean = jnp.where(finite, ctrl, 0.0)
@@ -284,9 +307,15 @@ class JointLimitShield(Wrapper):
         return _brax_state(self._base.sys, d_end)
 
     # ---- Brax Env interface -------------------------------------------------------------------
-    @_mjx_tracing
     def reset(self, rng: jax.Array) -> State:
-        state = self.env.reset(rng)
+        return self.env.reset(rng)  # reaches ``_shielded_reset`` (the innermost env's reset)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        return self.env.step(state, action)  # reaches ``_shielded_step``
+
+    @_mjx_tracing
+    def _shielded_reset(self, rng: jax.Array) -> State:
+        state = self._env_reset(rng)
         n = self.robot.n
         zero = jnp.zeros((), jnp.float32)
         info = dict(state.info)
@@ -297,11 +326,11 @@ class JointLimitShield(Wrapper):
         return state.replace(info=info, metrics=metrics)
 
     @_mjx_tracing
-    def step(self, state: State, action: jax.Array) -> State:
+    def _shielded_step(self, state: State, action: jax.Array) -> State:
         replaced = jnp.asarray(state.info.get(nonfinite_guard.FLAG, False), bool)
         self._pending, self._outputs = (state.info["shield_a_prev"], replaced), None
         try:
-            nstate = self.env.step(state, action)
+            nstate = self._env_step(state, action)
             if self._outputs is None:
                 raise RuntimeError("the wrapped env's step did not call pipeline_step")
             rec, dec, _ = self._outputs

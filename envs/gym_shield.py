@@ -345,10 +345,13 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
 
     # ---- Gymnasium interface -----------------------------------------------------------------------
     def reset(self, *, seed=None, options=None):
-        """``env.reset``; zeroes ``a_prev``."""
+        """``env.reset``; zeroes ``a_prev``; re-reads the actuators' values from the model (``CActuation.refresh``: a
+        domain randomisation that changed the model before this reset)."""
         self.a_prev = np.zeros(self._n, np.float32)
         self._records = []
-        return self.env.reset(seed=seed, options=options)
+        out = self.env.reset(seed=seed, options=options)
+        self.actuation.refresh()
+        return out
 
     def step(self, action):
         """``env.step(action)`` with ``info["violation"]`` and ``info["shield"]`` added (module docstring).

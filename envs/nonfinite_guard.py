@@ -35,17 +35,52 @@ def bad_action(action: jax.Array) -> jax.Array:
 
 
 class NonFiniteActionGuard(Wrapper):
-    """Replace a non-finite action by zeros before the wrapped env's ``step``; see the module docstring."""
+    """Replace a non-finite action by zeros before the wrapped env's ``step``; see the module docstring.
 
-    def reset(self, rng: jax.Array) -> State:
-        state = self.env.reset(rng)
+    Brax's ``DomainRandomizationVmapWrapper`` (its trainers' ``randomization_fn``) calls the innermost env's
+    ``step``/``reset`` directly, past every wrapper in between, this one too: so the guard also wraps the innermost
+    env's ``step``/``reset`` (instance attributes around whatever was there, e.g. a ``JointLimitShield``'s), which
+    act only when this wrapper's own ``step`` was bypassed (``_active``: set while it runs, at trace time). One
+    guard per env (a second one raises)."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        base = env.unwrapped
+        if "_guarded_by" in vars(base):
+            raise ValueError("this env already has a NonFiniteActionGuard (one per env)")
+        base._guarded_by = self
+        self._active = False
+        self._env_step, self._env_reset = base.step, base.reset
+        base.step, base.reset = self._innermost_step, self._innermost_reset
+
+    @staticmethod
+    def _flagged(state: State) -> State:
         flag = jnp.zeros(state.reward.shape, bool)
         return state.replace(info={**state.info, FLAG: flag}, metrics={**state.metrics, FLAG: flag.astype(jnp.float32)})
 
+    def reset(self, rng: jax.Array) -> State:
+        return self._flagged(self.env.reset(rng))
+
     def step(self, state: State, action: jax.Array) -> State:
+        self._active = True
+        try:
+            return self._guard(self.env.step, state, action)
+        finally:
+            self._active = False
+
+    def _innermost_reset(self, rng: jax.Array) -> State:
+        return self._flagged(self._env_reset(rng))
+
+    def _innermost_step(self, state: State, action: jax.Array) -> State:
+        if self._active:  # reached through this wrapper's own step: the action is already clean
+            return self._env_step(state, action)
+        return self._guard(self._env_step, state, action)
+
+    @staticmethod
+    def _guard(step, state: State, action: jax.Array) -> State:
         bad = bad_action(action)
         clean = jnp.where(bad[..., None], jnp.zeros_like(action), action)
-        nstate = self.env.step(state.replace(info={**state.info, FLAG: bad}), clean)
+        nstate = step(state.replace(info={**state.info, FLAG: bad}), clean)
         return nstate.replace(
             info={**nstate.info, FLAG: bad}, metrics={**nstate.metrics, FLAG: bad.astype(jnp.float32)}
         )

@@ -388,60 +388,81 @@ def shrink(tau_lo, tau_hi):
     return c - r, c + r
 
 
-def _implicit_damping(mjm: mujoco.MjModel) -> np.ndarray:
+def _on_dofs(xp, nv: int, dofs, values):
+    """``(nv,)`` zeros with ``values`` added at ``dofs`` (repeated dofs summed, in order)."""
+    if xp is np:
+        out = np.zeros(nv)
+        np.add.at(out, np.asarray(dofs, np.intp), values)
+        return out
+    return xp.zeros(nv, values.dtype).at[np.asarray(dofs, np.intp)].add(values)
+
+
+def _implicit_damping(mjm, values=None, xp=np):
+    """``Robot.implicit_damping`` ``(nv,)``. The integrator, flags and actuator types are read from ``mjm``
+    (``mujoco.MjModel`` or ``mjx.Model``), the damping and servo gains from ``values`` (default ``mjm``; e.g. a
+    Brax System a domain randomisation changed, with ``xp = jnp``)."""
+    values = mjm if values is None else values
     integ = int(mjm.opt.integrator)
     off = int(mjm.opt.disableflags)
-    D = np.zeros(mjm.nv)
+    damper = not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER)
     if integ == int(mujoco.mjtIntegrator.mjINT_EULER):
-        if not off & int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP) and not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
-            D += mjm.dof_damping
+        joint, servo = float(damper and not off & int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)), 0.0
     elif integ == int(mujoco.mjtIntegrator.mjINT_RK4):
         # RK4 holds ctrl over its four stages, so linear damping lowers the stages' accelerations by
         # D h a / 2 on average (first order): compensated here, the rest is second order (measured)
-        if not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
-            D += 0.5 * mjm.dof_damping
-        D += 0.5 * _servo_damping(mjm)
+        joint, servo = 0.5 * damper, 0.5
     elif integ == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST):
-        if not off & int(mujoco.mjtDisableBit.mjDSBL_DAMPER):
-            D += mjm.dof_damping
-            if mjm.ntendon and np.any(mjm.tendon_damping != 0):
-                raise ValueError("implicitfast with tendon damping is not supported (its derivative couples dofs)")
-        D += _servo_damping(mjm)
+        if damper and mjm.ntendon and np.any(np.asarray(mjm.tendon_damping) != 0):
+            raise ValueError("implicitfast with tendon damping is not supported (its derivative couples dofs)")
+        joint, servo = float(damper), 1.0
+    else:
+        joint, servo = 0.0, 0.0
+    D = _on_dofs(xp, int(mjm.nv), [], xp.zeros(0)) + joint * xp.asarray(values.dof_damping)
+    if servo:
+        D = D + servo * _servo_damping(mjm, values, xp)
     return D
 
 
-def _servo_damping(mjm: mujoco.MjModel) -> np.ndarray:
-    """``gear^2 kv`` on each dof driven by an actuator with a velocity bias (``biasprm[2] = -kv``), ``(nv,)``."""
-    D = np.zeros(mjm.nv)
+def _affine_joint_actuators(mjm, column: int) -> np.ndarray:
+    """The actuators with an affine bias whose ``biasprm[column]`` is nonzero in ``mjm`` (structure: static)."""
+    affine = np.asarray(mjm.actuator_biastype) == _BIAS_AFFINE
+    return np.flatnonzero(affine & (np.asarray(mjm.actuator_biasprm)[:, column] != 0))
+
+
+def _servo_damping(mjm, values=None, xp=np):
+    """``gear^2 kv`` on each dof driven by an actuator with a velocity bias (``biasprm[2] = -kv``), ``(nv,)``.
+    Which actuators: from ``mjm``; their gear and kv: from ``values`` (default ``mjm``)."""
+    values = mjm if values is None else values
     if int(mjm.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_ACTUATION):
-        return D
-    for a in range(mjm.nu):
-        if int(mjm.actuator_biastype[a]) != _BIAS_AFFINE or mjm.actuator_biasprm[a, 2] == 0:
-            continue
+        return _on_dofs(xp, int(mjm.nv), [], xp.zeros(0))
+    acts = _affine_joint_actuators(mjm, 2)
+    for a in acts:
         if int(mjm.actuator_trntype[a]) != _TRN_JOINT:
             raise ValueError(
                 f"actuator {_name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a)!r}: a velocity bias through a non-joint "
                 "transmission is not supported"
             )
-        g = mjm.actuator_gear[a, 0]
-        D[mjm.jnt_dofadr[mjm.actuator_trnid[a, 0]]] -= g * g * mjm.actuator_biasprm[a, 2]
-    return D
+    dofs = np.asarray(mjm.jnt_dofadr)[np.asarray(mjm.actuator_trnid)[acts, 0]]
+    g = xp.asarray(values.actuator_gear)[acts, 0]
+    return _on_dofs(xp, int(mjm.nv), dofs, -(g * g * xp.asarray(values.actuator_biasprm)[acts, 2]))
 
 
-def _rk4_stiffness(mjm: mujoco.MjModel) -> np.ndarray:
-    K = np.zeros(mjm.nv)
+def _rk4_stiffness(mjm, values=None, xp=np):
+    """``Robot.rk4_stiffness`` ``(nv,)``; structure from ``mjm``, stiffness and servo kp from ``values`` (default
+    ``mjm``), as ``_implicit_damping``."""
+    values = mjm if values is None else values
+    K = _on_dofs(xp, int(mjm.nv), [], xp.zeros(0))
     if int(mjm.opt.integrator) != int(mujoco.mjtIntegrator.mjINT_RK4):
         return K
-    for j in range(mjm.njnt):
-        if int(mjm.jnt_type[j]) in _SHIELDABLE:
-            K[mjm.jnt_dofadr[j]] += mjm.jnt_stiffness[j]
-    for a in range(mjm.nu):
-        if int(mjm.actuator_biastype[a]) == _BIAS_AFFINE and int(mjm.actuator_trntype[a]) == _TRN_JOINT:
-            j = mjm.actuator_trnid[a, 0]
-            if int(mjm.jnt_type[j]) in _SHIELDABLE:
-                g = mjm.actuator_gear[a, 0]
-                K[mjm.jnt_dofadr[j]] -= g * g * mjm.actuator_biasprm[a, 1]
-    return K
+    jnt_type, jnt_dofadr = np.asarray(mjm.jnt_type), np.asarray(mjm.jnt_dofadr)
+    joints = np.flatnonzero(np.isin(jnt_type, _SHIELDABLE))
+    K = K + _on_dofs(xp, int(mjm.nv), jnt_dofadr[joints], xp.asarray(values.jnt_stiffness)[joints])
+    acts = _affine_joint_actuators(mjm, 1)
+    trn = np.asarray(mjm.actuator_trnid)[acts, 0]
+    acts = acts[(np.asarray(mjm.actuator_trntype)[acts] == _TRN_JOINT) & np.isin(jnt_type[trn], _SHIELDABLE)]
+    g = xp.asarray(values.actuator_gear)[acts, 0]
+    dofs = jnt_dofadr[np.asarray(mjm.actuator_trnid)[acts, 0]]
+    return K + _on_dofs(xp, int(mjm.nv), dofs, -(g * g * xp.asarray(values.actuator_biasprm)[acts, 1]))
 
 
 def _coupled(mjm: mujoco.MjModel, dofs: np.ndarray) -> bool:

@@ -20,6 +20,7 @@ from jaxlimits.envs import JointLimitShield
 from jaxlimits.envs.actuation import MJX_CORRECTION_PASSES, MJX_MIN_SOLVER_ITERATIONS
 from jaxlimits.envs.brax_shield import _mj_model_of
 from jaxlimits.envs.adversarial import inside_reset, shield_rollout
+from jaxlimits.envs.nonfinite_guard import FLAG, NonFiniteActionGuard
 from jaxlimits.envs.reach import make_servo_panda_reach
 
 BATCH, STEPS = 64, 100  # 6400 env-steps per run here; the campaign runs >= 1e5
@@ -191,3 +192,91 @@ def test_bad_input_is_an_eager_error_naming_it():
         JointLimitShield(brax.envs.get_environment("reacher", backend="generalized"), v_max=1.0)
     with pytest.raises(ValueError, match="method must be one of"):
         _shield_pusher(_pusher(), method="clip")
+
+
+def test_a_domain_randomisation_reaches_the_shielded_physics():
+    """Brax's trainers randomise through ``DomainRandomizationVmapWrapper``, which sets each member's System on the
+    innermost env and calls its ``step``/``reset`` directly, past the wrappers in between. Before, that skipped the
+    shield's ``step`` (a ``RuntimeError``) and the guard's, and the shielded substeps ran the System captured at
+    construction (a randomisation would not have reached the physics). Now: shielded members follow their own
+    randomised physics (as the unshielded env does, to the difference between holding the acceleration and holding
+    ``ctrl`` over the substeps), under bang-bang commands never violate while the unshielded randomised env does,
+    and a NaN action is still replaced and braked."""
+    from brax.envs.wrappers.training import DomainRandomizationVmapWrapper
+
+    scale = jnp.array([1.0, 3.0, 0.4, 2.0] * 2)  # masses; damping grows with it
+
+    def randomise(sys):
+        s = scale[:, None]
+        sys_v = sys.tree_replace({"body_mass": sys.body_mass[None] * s, "dof_damping": sys.dof_damping[None] * s})
+        in_axes = jax.tree_util.tree_map(lambda _: None, sys).tree_replace({"body_mass": 0, "dof_damping": 0})
+        return sys_v, in_axes
+
+    def run(env, actions):
+        reset, step = jax.jit(env.reset), jax.jit(env.step)
+        s = reset(jax.random.split(jax.random.PRNGKey(0), len(scale)))
+        out = []
+        for a in actions:
+            s = step(s, jnp.broadcast_to(a, (len(scale), env.action_size)))
+            out.append(s)
+        return out
+
+    v_max = 4.0
+    shielded = DomainRandomizationVmapWrapper(
+        NonFiniteActionGuard(JointLimitShield(brax.envs.get_environment("reacher", backend="mjx"), v_max=v_max)),
+        randomise,
+    )
+    plain = DomainRandomizationVmapWrapper(brax.envs.get_environment("reacher", backend="mjx"), randomise)
+    gentle = [0.02 * (1.0 if (t // 5) % 2 else -1.0) for t in range(20)]  # far inside every bound
+    bang = [1.0 if (t // 7) % 2 else -1.0 for t in range(100)]
+    s_sh = run(shielded, gentle + bang + [jnp.nan])
+    # the guard inside acts too (the randomisation passes it by): the NaN action braked, flagged, the reward finite
+    last = s_sh.pop()
+    assert np.all(np.asarray(last.metrics[FLAG]) == 1.0) and np.all(np.asarray(last.metrics["shield/nonfinite"]) == 1.0)
+    assert np.all(np.isfinite(np.asarray(last.reward))) and np.all(np.isfinite(np.asarray(last.pipeline_state.qvel)))
+    with jax.numpy_rank_promotion("allow"):  # MJX's own code relies on it (the shield allows it around MJX)
+        s_pl = run(plain, gentle + bang)
+    qvel_sh = np.array([s.pipeline_state.qvel for s in s_sh[: len(gentle)]])
+    qvel_pl = np.array([s.pipeline_state.qvel for s in s_pl[: len(gentle)]])
+    assert max(float(np.max(s.metrics["shield/intervention"])) for s in s_sh[: len(gentle)]) < 1e-4  # premise
+    heavy = np.asarray(scale) != 1.0
+    randomised = np.abs(qvel_pl[:, heavy] - qvel_pl[:, [0]]).max(axis=(0, 2))  # what the randomisation changes
+    assert np.all(randomised > 0.02), randomised
+    followed = np.abs(qvel_sh - qvel_pl).max(axis=(0, 2))
+    assert np.all(followed[heavy] < 0.15 * randomised), (followed, randomised)
+    # adversarial: the shield holds each member's limits on its own physics; the unshielded members break them
+    viol = {k: sum(int(np.sum(s.info["violation"][k] > 0)) for s in s_sh) for k in ("position", "velocity")}
+    assert viol == {"position": 0, "velocity": 0}, viol
+    assert sum(int(np.sum(s.metrics["shield/saturated"])) for s in s_sh) == 0
+    over = sum(int(np.sum(np.abs(s.pipeline_state.qvel[:, :2]) > v_max)) for s in s_pl)
+    assert over > 0
+
+
+@pytest.mark.parametrize("integrator", ["EULER", "RK4", "IMPLICITFAST"])
+def test_the_arrays_read_from_a_system_are_the_robots_and_follow_its_changes(integrator):
+    """``MjxActuation.with_system``: a System with the construction's values gives the robot's own actuator arrays,
+    implicit damping and RK4 stiffness (float32); changed gains and damping move them."""
+    env = (
+        make_servo_panda_reach()
+        if integrator == "IMPLICITFAST"
+        else brax.envs.get_environment("reacher", backend="mjx")
+    )
+    env.sys = env.sys.tree_replace({"opt.integrator": getattr(mujoco.mjtIntegrator, f"mjINT_{integrator}")})
+    if integrator != "IMPLICITFAST":  # the reacher's motors given a servo's bias, so that every term is nonzero
+        bias = env.sys.actuator_biasprm.at[:, 1:3].set(jnp.array([-2.0, -0.5]))
+        env.sys = env.sys.tree_replace({"actuator_biastype": np.ones(env.sys.nu, np.int32), "actuator_biasprm": bias})
+    shield = JointLimitShield(env, v_max=4.0, a_max=1.0)
+    act = shield.actuation
+    same = act.with_system(env.sys.tree_replace({"body_mass": env.sys.body_mass}))
+    assert same is not act and act.with_system(env.sys) is act
+    for mine, read in zip(act._arrays, same._arrays):
+        np.testing.assert_array_equal(np.asarray(read), mine)
+    for mine, read in ((act._damping, same._damping), (act._stiff, same._stiff)):
+        np.testing.assert_allclose(np.asarray(read), mine, rtol=1e-6)
+        assert mine.shape == (env.sys.nv,)
+    assert np.any(act._damping > 0) and (integrator != "RK4" or np.any(act._stiff > 0))
+    doubled = act.with_system(
+        env.sys.tree_replace({"actuator_gainprm": 2 * env.sys.actuator_gainprm, "dof_damping": 2 * env.sys.dof_damping})
+    )
+    np.testing.assert_allclose(np.asarray(doubled._arrays[3]), 2 * act._arrays[3])
+    assert np.all(np.asarray(doubled._damping) >= act._damping) and np.any(np.asarray(doubled._damping) > act._damping)
