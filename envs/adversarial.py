@@ -47,7 +47,8 @@ def _action(kind, signs, period, t, key):
 def inside_reset(env, margin: float = 0.01):
     """``env.reset`` with the shielded joints clipped into their ranges shrunk by ``margin`` [rad or m]: for
     envs whose own reset starts at or past a limit (Brax ``pusher``: elbow and wrist flex at their upper
-    limit 0 plus noise), which is outside any guarantee (counted as non-viable otherwise)."""
+    limit 0 plus noise), which is outside any guarantee (counted as non-viable otherwise). ``env`` may step a batch
+    itself (Brax's ``DomainRandomizationVmapWrapper`` around the shield): the reset then takes ``(batch, 2)`` keys."""
     r = env.robot
     lo = np.where(r.limited, r.limits.q_min + margin, -np.inf).astype(np.float32)
     hi = np.where(r.limited, r.limits.q_max - margin, np.inf).astype(np.float32)
@@ -56,13 +57,18 @@ def inside_reset(env, margin: float = 0.01):
     def reset(key):
         st = env.reset(key)
         d = st.pipeline_state
-        return st.replace(pipeline_state=d.replace(qpos=d.qpos.at[adr].set(jnp.clip(d.qpos[adr], lo, hi))))
+        q = d.qpos.at[..., adr].set(jnp.clip(d.qpos[..., adr], lo, hi))
+        return st.replace(pipeline_state=d.replace(qpos=q))
 
     return reset
 
 
-def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 200, reset=None) -> dict:
+def shield_rollout(
+    env, batch: int, steps: int, seed: int = 0, episode: int = 200, reset=None, batched: bool = False
+) -> dict:
     """Run the adversarial policies through ``env`` (a ``JointLimitShield``); see the module docstring.
+    ``batched``: ``env`` resets and steps ``batch`` members itself (Brax's ``DomainRandomizationVmapWrapper``
+    around the shield, ``batch`` its members; ``reset`` then takes ``(batch, 2)`` keys), else it is vmapped here.
 
     Returns a dict: ``env_steps``; per policy ``p`` and in total: ``count/<k>`` (env-steps with
     ``k`` > 0 for ``k`` in position, velocity, torque, saturated, nonfinite, nonviable, disturbance),
@@ -77,11 +83,11 @@ def shield_rollout(env, batch: int, steps: int, seed: int = 0, episode: int = 20
     def run(key):
         k_reset, k_sign, k_per, k_roll = jax.random.split(key, 4)
         keys = jax.random.split(k_reset, batch)
-        states0 = jax.vmap(reset)(keys)
+        states0 = reset(keys) if batched else jax.vmap(reset)(keys)
         signs = jnp.where(jax.random.bernoulli(k_sign, 0.5, (batch, n_act)), 1.0, -1.0).astype(jnp.float32)
         period = jax.random.randint(k_per, (batch, n_act), 5, 60)
         kind = jnp.asarray(kind_np)[:, None]
-        step = jax.vmap(env.step)
+        step = env.step if batched else jax.vmap(env.step)
 
         def body(carry, t):
             states, disturbed, acc = carry

@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import jaxlimits as jl
 from jaxlimits.envs.robot import Robot
@@ -88,6 +89,9 @@ class SafeAcceleration:
             jl.make_discretisation(self.dt, self.integrator, self.substeps)  # validates eagerly
         if method in ("viability", "jerk"):
             jl.check_condition_11(lim, self.dt)
+        if method == "jerk":  # else raised at the first trace of a step (the bounds' own check)
+            placed = robot.bound_positions(np.zeros(robot.n), self.dt, lim)[1]
+            jl.check_jerk_condition(placed, self.dt, self.integrator, self.substeps)
 
     def __call__(self, q, v, a_des, a_prev=None, torque=None) -> Decision:
         """``torque``: optional ``actuation.TorqueModel`` (``tau = M a - f`` in ``[tau_lo, tau_hi]``). Then the

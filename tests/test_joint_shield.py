@@ -34,6 +34,15 @@ def decide():
     return {m: SafeAcceleration(robot, 5, m) for m in ("viability", "jerk")}
 
 
+def test_jerk_bounds_that_cannot_recover_are_refused_at_construction():
+    """``method="jerk"`` with too little braking for the range (here a_max 0.01 rad/s^2 at j_max 200): the bounds'
+    own check raises, at construction, not at the first trace of a step (a Brax env's first jitted call)."""
+    robot = Robot.from_model(mujoco.MjModel.from_xml_string(TWO), v_max=1.5, a_max=0.01, j_max=200.0)
+    SafeAcceleration(robot, 5, "viability")  # viability has no such condition
+    with pytest.raises(ValueError, match="jerk-aware bounds are exact only with room to recover"):
+        SafeAcceleration(robot, 5, "jerk")
+
+
 def _torque(dtype, M, f, lo, hi):
     return TorqueModel(*(jnp.asarray(x, dtype) for x in (M, f, lo, hi)))
 
