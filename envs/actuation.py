@@ -27,10 +27,10 @@ constraints' own response: one Newton step on the solver's piecewise-quadratic p
     dr = G dtau,   G = M_eff^-1 M H^-1,   H = M + J^T diag(D active) J      (restricted to the shielded dofs),
 
 exact while the active constraint rows do not change (the solver's Hessian, as MJX's Newton solver
-forms it); then the substep is solved again with the corrected ctrl and integrated (MJX, where the
-shielded joints share a tree with unshielded dofs, a floating or planar base: twice,
-``MJX_CORRECTION_PASSES``, the second pass from the rows the first one's torque made or broke; elsewhere,
-and in C MuJoCo, once). Brax's ``ant`` and ``humanoid`` run MJX's solver for one
+forms it); then the substep is solved again with the corrected ctrl and integrated (where the
+shielded joints share a tree with unshielded dofs, a floating or planar base or a gripper's fingers: twice,
+``MJX_CORRECTION_PASSES``, the second pass from the rows the first one's torque made or broke, on MJX and
+in C MuJoCo's Euler/implicitfast; elsewhere once). Brax's ``ant`` and ``humanoid`` run MJX's solver for one
 iteration, whose answer does not respond to torque as the converged one: the shielded substeps run at
 least ``MJX_MIN_SOLVER_ITERATIONS`` (Brax ``ant``, 3 200 adversarial env-steps: 1 012 position-violating
 steps with one pass at the env's one iteration, 318 with two passes, 54 at four iterations and one pass, 0
@@ -396,6 +396,7 @@ class CActuation:
         self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         self._state = np.empty(mujoco.mj_stateSize(model, _STATE))  # an RK4 substep's start (_rk4_step_in_band)
         self._other_rows = other_rows_on_trees(model, robot)
+        self._passes = MJX_CORRECTION_PASSES if robot.coupled else 1  # as MJX's (Euler, implicitfast; RK4 retakes)
         self._M = np.zeros((model.nv, model.nv))
         self._diag = np.diag_indices(model.nv)
         self._act = as_slice(robot.actuator_ids)
@@ -475,6 +476,22 @@ class CActuation:
                 d.qacc_warmstart[:] = d.qacc + dqacc
                 ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
                 d.ctrl[self._act] = ctrl
+                # a floating base or unshielded dofs on the shielded chain (a gripper's fingers against their limits):
+                # the torque makes or breaks rows; corrected again from the rows it met, as MJX does
+                for _ in range(self._passes - 1 if not self._rk4 else 0):
+                    mujoco.mj_fwdActuation(m, d)
+                    mujoco.mj_fwdAcceleration(m, d)
+                    mujoco.mj_fwdConstraint(m, d)
+                    qfrc = d.qfrc_smooth + d.qfrc_constraint
+                    r = np.linalg.solve(M_eff, qfrc)[self._dofs]
+                    if not np.any((r < band[0]) | (r > band[1])):
+                        break
+                    rows2 = (M_full, self._efc_jacobian(d), self._efc_d_active(d))
+                    step, _, dqacc = contact_correction(np, self._dofs, rows2[0], M_eff, rows2[1], rows2[2], qfrc, band)
+                    d.qacc_warmstart[:] = d.qacc + dqacc
+                    dtau = dtau + step
+                    ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
+                    d.ctrl[self._act] = ctrl
         if self._rk4 and band is not None:
             inv = Inversion(ctrl, excess, sat)
             return self._rk4_step_in_band(d, M_eff, f_other, a, q, v, band, dtau, rows, rk4_tol, inv), out
