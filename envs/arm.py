@@ -334,7 +334,19 @@ class ArmReach(Env):
         return State(d, obs, zero, zero, metrics, info)
 
     def step(self, state: State, action: jax.Array) -> State:
-        """One control step with ``action * a_max`` commanded (no clipping: see ``SafetyWrapper``)."""
+        """One control step with ``action * a_max`` commanded (no clipping: see ``SafetyWrapper``).
+
+        Raises ``TypeError`` when a ``SafetyWrapper`` shields this env but its System was swapped: Brax's
+        ``DomainRandomizationVmapWrapper`` (the trainers' ``randomization_fn``) steps the innermost env directly
+        with each member's System, past the wrapper, which would train unshielded."""
+        shielded_with = vars(self).get("_safety_sys")
+        if shielded_with is not None and self.sys is not shielded_with:
+            raise TypeError(
+                "this env is shielded by a SafetyWrapper but was stepped directly with another System (Brax's "
+                "DomainRandomizationVmapWrapper steps the innermost env past its wrappers, so it would run "
+                "unshielded); for a randomised robot use JointLimitShield (e.g. over envs.reach.Reach), which acts "
+                "at the innermost env"
+            )
         return self.step_acc(state, action * self._f32(self.limits.a_max))
 
     # ---- physics --------------------------------------------------------------------------------

@@ -127,6 +127,8 @@ class SafetyWrapper(Wrapper):
         self.gradient = gradient
         if not isinstance(env, ArmReach):
             raise TypeError(f"SafetyWrapper wraps an ArmReach directly, got {type(env).__name__}")
+        # the System this env is shielded with: its own step refuses another (a domain randomisation passing by)
+        vars(env).setdefault("_safety_sys", env.sys)
         self.method = method
         self.torque_box = bool(torque_box)
         if not 0.0 < torque_box_margin <= 1.0:

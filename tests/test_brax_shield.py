@@ -280,3 +280,27 @@ def test_the_arrays_read_from_a_system_are_the_robots_and_follow_its_changes(int
     )
     np.testing.assert_allclose(np.asarray(doubled._arrays[3]), 2 * act._arrays[3])
     assert np.all(np.asarray(doubled._damping) >= act._damping) and np.any(np.asarray(doubled._damping) > act._damping)
+
+
+def test_a_domain_randomisation_cannot_pass_the_projects_own_arm_shield_by():
+    """The project's own arms (``ArmReach`` + ``SafetyWrapper``) do not take over the innermost env's ``step``: a
+    ``DomainRandomizationVmapWrapper`` around them would step the arm unshielded, so it raises instead (before:
+    silently unshielded). The arm stepped through its wrapper, or alone, is unchanged."""
+    from brax.envs.wrappers.training import DomainRandomizationVmapWrapper
+
+    from jaxlimits.envs.arm import make_planar_reach
+    from jaxlimits.envs.safety import SafetyWrapper
+
+    def randomise(sys):
+        mass = sys.body_mass[None] * jnp.array([[1.0], [2.0]])
+        return sys.tree_replace({"body_mass": mass}), jax.tree_util.tree_map(lambda _: None, sys).tree_replace(
+            {"body_mass": 0}
+        )
+
+    arm = make_planar_reach()
+    env = DomainRandomizationVmapWrapper(SafetyWrapper(arm, "viability"), randomise)
+    states = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), 2))
+    with pytest.raises(TypeError, match="stepped directly with another System"):
+        env.step(states, jnp.zeros((2, arm.action_size)))
+    alone = make_planar_reach()
+    alone.step(alone.reset(jax.random.PRNGKey(0)), jnp.zeros(alone.action_size))  # no wrapper: no check
