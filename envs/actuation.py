@@ -58,7 +58,7 @@ import numpy as np
 from mujoco import mjx
 
 import jaxlimits as jl
-from jaxlimits.envs.robot import _BIAS_AFFINE, Robot, _implicit_damping, _rk4_stiffness, shrink, torque_range
+from jaxlimits.envs.robot import Robot, _implicit_damping, _rk4_stiffness, actuator_arrays, shrink, torque_range
 
 
 class Inversion(NamedTuple):
@@ -122,27 +122,6 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None)
     saturated = (ctrl != ctrl_needed) | (force != force_free)
     excess = xp.where(saturated, xp.abs(gear * (force_needed - force)), 0.0)
     return ctrl, excess, saturated
-
-
-def read_actuators(xp, robot: Robot, structure, values, dtype):
-    """``(gear, gain, bias, ctrl_range, force_range)`` of the robot's actuators (as ``Robot``'s fields) with their
-    values read from ``values`` (a ``mujoco.MjModel`` or a Brax ``System``, whose values a domain randomisation may
-    have changed: traced under ``vmap``) and which of them have an affine bias from ``structure`` (the model the
-    robot was read from). Limited ranges as the robot's (``±inf`` where not limited)."""
-    act = np.asarray(robot.actuator_ids)
-    affine = np.asarray(structure.actuator_biastype)[act] == _BIAS_AFFINE
-    unbounded = np.array([-np.inf, np.inf], dtype)
-
-    def ranged(field, limited):
-        return xp.where(limited[:, None], xp.asarray(field, dtype)[act], unbounded)
-
-    return (
-        xp.asarray(values.actuator_gear, dtype)[act, 0],
-        xp.asarray(values.actuator_gainprm, dtype)[act, 0],
-        xp.where(affine[:, None], xp.asarray(values.actuator_biasprm, dtype)[act, :3], 0.0),
-        ranged(values.actuator_ctrlrange, np.isfinite(robot.ctrl_range).all(axis=1)),
-        ranged(values.actuator_forcerange, np.isfinite(robot.force_range).all(axis=1)),
-    )
 
 
 def contact_response(xp, dofs, M, M_eff, J, D_active):
@@ -281,7 +260,9 @@ class MjxActuation:
             return self
         new = copy.copy(self)
         new._given, new.sys = sys, _with_min_iterations(sys)
-        new._arrays = self._arrays[:2] + read_actuators(jnp, self.robot, self._structure, sys, jnp.float32)
+        new._arrays = self._arrays[:2] + actuator_arrays(
+            jnp, self._structure, sys, self.robot.actuator_ids, jnp.float32
+        )
         h = self.robot.timestep
         new._damping = (h * _implicit_damping(self._structure, sys, jnp)).astype(jnp.float32)
         new._stiff = (0.5 * h * _rk4_stiffness(self._structure, sys, jnp)).astype(jnp.float32)
@@ -396,7 +377,7 @@ class CActuation:
         self._rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
         self._state = np.empty(mujoco.mj_stateSize(model, _STATE))  # an RK4 substep's start (_rk4_step_in_band)
         self._other_rows = other_rows_on_trees(model, robot)
-        self._passes = MJX_CORRECTION_PASSES if robot.coupled else 1  # as MJX's (Euler, implicitfast; RK4 retakes)
+        self._passes = MJX_CORRECTION_PASSES if robot.coupled else 1  # as MJX's (Euler, implicitfast)
         self._M = np.zeros((model.nv, model.nv))
         self._diag = np.diag_indices(model.nv)
         self._act = as_slice(robot.actuator_ids)
@@ -411,7 +392,7 @@ class CActuation:
         ``reset``). Masses and armature need nothing: ``M`` is the live model's at every substep. The robot's limits,
         ``a_max`` included, stay those of construction."""
         m, h = self.model, self.robot.timestep
-        self._arrays = self._arrays[:2] + read_actuators(np, self.robot, self._structure, m, np.float64)
+        self._arrays = self._arrays[:2] + actuator_arrays(np, self._structure, m, self.robot.actuator_ids, np.float64)
         self._damping = h * _implicit_damping(self._structure, m)
         self._stiff = 0.5 * h * _rk4_stiffness(self._structure, m)
 
@@ -459,39 +440,31 @@ class CActuation:
         d.ctrl[self._act] = ctrl
         out, dtau, rows = None, np.zeros_like(v), None
         if band is not None and (d.ncon or self._other_rows) and self._rows_touch_trees(d):
-            mujoco.mj_fwdActuation(m, d)
-            mujoco.mj_fwdAcceleration(m, d)
-            mujoco.mj_fwdConstraint(m, d)
-            qfrc = d.qfrc_smooth + d.qfrc_constraint
-            r = np.linalg.solve(M_eff, qfrc)[self._dofs]
-            outside = np.any((r < band[0]) | (r > band[1]))
-            if outside or self._rk4:
-                # the start's constraint rows (a copy of efc_J for RK4: the step overwrites it, and a retake may
-                # need their response, _rk4_step_in_band)
-                J = self._efc_jacobian(d)
-                rows = (self._full_m(d), J.copy() if self._rk4 else J, self._efc_d_active(d))
-            if outside:
-                M_full, J, D_active = rows
-                dtau, out, dqacc = contact_correction(np, self._dofs, M_full, M_eff, J, D_active, qfrc, band)
+            # where the shielded joints share a chain with unshielded dofs (a floating base, a gripper's fingers
+            # against their limits) the corrected torque makes or breaks rows: corrected again from the rows it
+            # met, as MJX does (RK4: one pass, then the retakes of _rk4_step_in_band)
+            for k in range(1 if self._rk4 else self._passes):
+                mujoco.mj_fwdActuation(m, d)
+                mujoco.mj_fwdAcceleration(m, d)
+                mujoco.mj_fwdConstraint(m, d)
+                qfrc = d.qfrc_smooth + d.qfrc_constraint
+                r = np.linalg.solve(M_eff, qfrc)[self._dofs]
+                outside = np.any((r < band[0]) | (r > band[1]))
+                if k == 0 and (outside or self._rk4):
+                    # the start's constraint rows (a copy of efc_J for RK4: the step overwrites it, and a retake
+                    # may need their response, _rk4_step_in_band)
+                    J = self._efc_jacobian(d)
+                    rows = (self._full_m(d), J.copy() if self._rk4 else J, self._efc_d_active(d))
+                if not outside:
+                    break
+                J, D_active = (rows[1], rows[2]) if k == 0 else (self._efc_jacobian(d), self._efc_d_active(d))
+                step, out_k, dqacc = contact_correction(np, self._dofs, rows[0], M_eff, J, D_active, qfrc, band)
+                if k == 0:  # the push as the shield's ctrl met it (the metric); later passes correct its residual
+                    out = out_k
                 d.qacc_warmstart[:] = d.qacc + dqacc
+                dtau = dtau + step
                 ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
                 d.ctrl[self._act] = ctrl
-                # a floating base or unshielded dofs on the shielded chain (a gripper's fingers against their limits):
-                # the torque makes or breaks rows; corrected again from the rows it met, as MJX does
-                for _ in range(self._passes - 1 if not self._rk4 else 0):
-                    mujoco.mj_fwdActuation(m, d)
-                    mujoco.mj_fwdAcceleration(m, d)
-                    mujoco.mj_fwdConstraint(m, d)
-                    qfrc = d.qfrc_smooth + d.qfrc_constraint
-                    r = np.linalg.solve(M_eff, qfrc)[self._dofs]
-                    if not np.any((r < band[0]) | (r > band[1])):
-                        break
-                    rows2 = (M_full, self._efc_jacobian(d), self._efc_d_active(d))
-                    step, _, dqacc = contact_correction(np, self._dofs, rows2[0], M_eff, rows2[1], rows2[2], qfrc, band)
-                    d.qacc_warmstart[:] = d.qacc + dqacc
-                    dtau = dtau + step
-                    ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
-                    d.ctrl[self._act] = ctrl
         if self._rk4 and band is not None:
             inv = Inversion(ctrl, excess, sat)
             return self._rk4_step_in_band(d, M_eff, f_other, a, q, v, band, dtau, rows, rk4_tol, inv), out

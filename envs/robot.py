@@ -268,17 +268,7 @@ class Robot:
         rng = mjm.jnt_range[jids].astype(np.float64)
         q_min = np.where(limited, rng[:, 0], -1.0)  # placeholders for unlimited joints (see bound_positions)
         q_max = np.where(limited, rng[:, 1], 1.0)
-        gear = mjm.actuator_gear[aids, 0].astype(np.float64)
-        gain = mjm.actuator_gainprm[aids, 0].astype(np.float64)
-        affine = mjm.actuator_biastype[aids] == _BIAS_AFFINE
-        bias = np.where(affine[:, None], mjm.actuator_biasprm[aids, :3], 0.0).astype(np.float64)
-        inf = np.inf
-        ctrl_range = np.where(
-            mjm.actuator_ctrllimited[aids, None].astype(bool), mjm.actuator_ctrlrange[aids], [-inf, inf]
-        )
-        force_range = np.where(
-            mjm.actuator_forcelimited[aids, None].astype(bool), mjm.actuator_forcerange[aids], [-inf, inf]
-        )
+        gear, gain, bias, ctrl_range, force_range = actuator_arrays(np, mjm, mjm, aids, np.float64)
         unbounded = ~np.isfinite(force_range).all(axis=1) & ~np.isfinite(ctrl_range).all(axis=1)
         if np.any(unbounded):
             raise ValueError(
@@ -382,6 +372,28 @@ def torque_range(xp, robot_arrays, q, v, dt=0.0, a_max=0.0):
     return xp.minimum(t1, t2), xp.maximum(t1, t2)
 
 
+def actuator_arrays(xp, structure, values, actuator_ids, dtype):
+    """``(gear, gain, bias, ctrl_range, force_range)`` of the actuators ``actuator_ids`` ``(n,)``, as ``Robot``'s
+    fields: which have an affine bias and which ranges are limited from ``structure`` (the model the robot is read
+    from), the values from ``values`` (the same model, or a Brax ``System`` or live ``MjModel`` whose values a domain
+    randomisation changed: traced under ``vmap`` with ``xp = jnp``); ``±inf`` where a range is not limited."""
+    act = np.asarray(actuator_ids)
+    affine = np.asarray(structure.actuator_biastype)[act] == _BIAS_AFFINE
+    unbounded = np.array([-np.inf, np.inf], dtype)
+
+    def ranged(field, limited):
+        limited = np.asarray(limited)[act].astype(bool)
+        return xp.where(limited[:, None], xp.asarray(field, dtype)[act], unbounded)
+
+    return (
+        xp.asarray(values.actuator_gear, dtype)[act, 0],
+        xp.asarray(values.actuator_gainprm, dtype)[act, 0],
+        xp.where(affine[:, None], xp.asarray(values.actuator_biasprm, dtype)[act, :3], 0.0),
+        ranged(values.actuator_ctrlrange, structure.actuator_ctrllimited),
+        ranged(values.actuator_forcerange, structure.actuator_forcelimited),
+    )
+
+
 def shrink(tau_lo, tau_hi):
     """The ranges shrunk about their middles to ``TORQUE_MARGIN`` of their widths."""
     c, r = (tau_lo + tau_hi) / 2, TORQUE_MARGIN * (tau_hi - tau_lo) / 2
@@ -417,7 +429,7 @@ def _implicit_damping(mjm, values=None, xp=np):
         joint, servo = float(damper), 1.0
     else:
         joint, servo = 0.0, 0.0
-    D = _on_dofs(xp, int(mjm.nv), [], xp.zeros(0)) + joint * xp.asarray(values.dof_damping)
+    D = xp.zeros(int(mjm.nv)) + joint * xp.asarray(values.dof_damping)
     if servo:
         D = D + servo * _servo_damping(mjm, values, xp)
     return D
@@ -434,7 +446,7 @@ def _servo_damping(mjm, values=None, xp=np):
     Which actuators: from ``mjm``; their gear and kv: from ``values`` (default ``mjm``)."""
     values = mjm if values is None else values
     if int(mjm.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_ACTUATION):
-        return _on_dofs(xp, int(mjm.nv), [], xp.zeros(0))
+        return xp.zeros(int(mjm.nv))
     acts = _affine_joint_actuators(mjm, 2)
     for a in acts:
         if int(mjm.actuator_trntype[a]) != _TRN_JOINT:
@@ -451,7 +463,7 @@ def _rk4_stiffness(mjm, values=None, xp=np):
     """``Robot.rk4_stiffness`` ``(nv,)``; structure from ``mjm``, stiffness and servo kp from ``values`` (default
     ``mjm``), as ``_implicit_damping``."""
     values = mjm if values is None else values
-    K = _on_dofs(xp, int(mjm.nv), [], xp.zeros(0))
+    K = xp.zeros(int(mjm.nv))
     if int(mjm.opt.integrator) != int(mujoco.mjtIntegrator.mjINT_RK4):
         return K
     jnt_type, jnt_dofadr = np.asarray(mjm.jnt_type), np.asarray(mjm.jnt_dofadr)
