@@ -1,6 +1,6 @@
 """Adversarial campaign of ``JointLimitShield`` on third-party Brax envs and the shipped servo arms.
 
-For each env (Brax ``pusher`` and ``reacher`` on MJX, the shipped position-servo Panda and UR5e
+For each env (Brax ``pusher`` and ``reacher`` on MJX, the shipped position-servo Panda, UR5e and Kinova Gen3
 ``Reach``; Brax ``hopper``, ``walker2d``, ``ant``, ``inverted_pendulum`` at ``v_max`` 3 rad/s) and shield (viability, jerk where the MJCF has j_max, and ``none`` = unshielded through
 the same code), ``shield_rollout`` runs the adversarial policies (targets/torques at the upper
 bounds, lower bounds, bang-bang, random) and counts violations at every physics substep. Prints a
@@ -34,13 +34,14 @@ from brax.envs.wrappers.training import DomainRandomizationVmapWrapper
 
 from jaxlimits.envs import JointLimitShield
 from jaxlimits.envs.adversarial import inside_reset, shield_rollout
-from jaxlimits.envs.reach import make_servo_panda_reach, make_ur5e_reach
+from jaxlimits.envs.reach import make_gen3_reach, make_servo_panda_reach, make_ur5e_reach
 
 ENVS = {
     "brax pusher": (lambda: brax.envs.get_environment("pusher", backend="mjx"), dict(v_max=2.0)),
     "brax reacher": (lambda: brax.envs.get_environment("reacher", backend="mjx"), dict(v_max=4.0)),
     "servo Panda": (make_servo_panda_reach, {}),
     "UR5e": (make_ur5e_reach, {}),
+    "Gen3": (make_gen3_reach, {}),  # Kinova: four unlimited joints, light wrists under stiff servos
     # more of Brax's own envs (MJX, Euler): a planar or free base, feet on the floor; a cart under an unactuated pole
     **{
         f"brax {e}": (lambda e=e: brax.envs.get_environment(e, backend="mjx"), dict(v_max=3.0))
@@ -53,6 +54,7 @@ SHIELDS = {
     **{f"brax {e}": ("viability", "none") for e in ("hopper", "walker2d", "ant", "inverted_pendulum")},
     "servo Panda": ("viability", "jerk", "none"),
     "UR5e": ("viability", "none"),
+    "Gen3": ("viability", "none"),
 }
 
 

@@ -223,7 +223,8 @@ class JointLimitShield(Wrapper):
         self.n_frames = int(base._n_frames)
         robot_kwargs.setdefault("control_dt", float(base.sys.opt.timestep) * self.n_frames)
         self.robot = Robot.from_model(_mj_model_of(base.sys), joints, v_max, a_max, j_max, **robot_kwargs)
-        self.decide = SafeAcceleration(self.robot, self.n_frames, method, gradient)
+        # MJX computes in float32: the limits keep clear of the servos' ctrl rounding (joint_shield's docstring)
+        self.decide = SafeAcceleration(self.robot, self.n_frames, method, gradient, realisation_margin=True)
         self.actuation = MjxActuation(self.robot, base.sys)
         self.method = method
         self._base = base

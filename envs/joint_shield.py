@@ -17,6 +17,13 @@ are tightened by ``RK4_MARGIN`` (positions by ``RK4_MARGIN v_max dt``, velocitie
 are measured against the model's own limits. Where a substep deviates more (contacts within the
 substep, joint damping fast against it: Gymnasium's Ant), the Gymnasium wrapper retakes it
 (``RK4_RESTEP``, ``actuation.CActuation``).
+
+MJX computes in float32, where a stiff position servo on a light link realises its acceleration only to
+the rounding of its ``ctrl`` (``Robot.ctrl_quantum``: Kinova Gen3's wrists, kp 500 and no armature, miss it
+by up to 4e-3 rad/s^2, and riding ``v_max`` overshot it by 5e-5 rad/s in most steps). With
+``realisation_margin`` (the Brax wrapper's) the velocity limits are tightened by ``QUANTUM_SAFETY`` times the
+velocity that error gives over a control step, ``n_frames h ctrl_quantum``, the positions by that times
+``dt``; for motors and heavy links it is ~1e-6 of ``v_max``.
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ RK4_RESTEP = 0.25
 # (``_torque_space``); False keeps the torque-space form (the A/B of docs/shield.md and tests/test_joint_shield.py)
 ACCEL_SPACE_FIRST = True
 BOUNDS_TOL = 1e-3  # [a_max] torque-space answers this close to the bounds are the bounds (solver roundoff)
+QUANTUM_SAFETY = 2.0  # the realisation margin's factor over the float32 ctrl rounding's velocity error
 
 
 def _reduce(op, terms: dict, full):
@@ -66,7 +74,14 @@ class Decision(NamedTuple):
 class SafeAcceleration:
     """Bounds and projection for ``robot`` over ``n_frames`` substeps; see the module docstring."""
 
-    def __init__(self, robot: Robot, n_frames: int, method: str = "viability", gradient: str = "exact"):
+    def __init__(
+        self,
+        robot: Robot,
+        n_frames: int,
+        method: str = "viability",
+        gradient: str = "exact",
+        realisation_margin: bool = False,
+    ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if int(n_frames) != n_frames or n_frames < 1:
@@ -84,6 +99,15 @@ class SafeAcceleration:
         if self.integrator == "zoh":
             m_q = RK4_MARGIN * lim.v_max * self.dt
             lim = lim.replace(q_min=lim.q_min + m_q, q_max=lim.q_max - m_q, v_max=lim.v_max * (1.0 - RK4_MARGIN))
+        if realisation_margin:
+            m_v = QUANTUM_SAFETY * self.n_frames * robot.timestep * np.asarray(robot.ctrl_quantum)
+            if np.any(m_v >= 0.01 * np.asarray(lim.v_max)):
+                bad = {robot.names[i]: float(m_v[i]) for i in np.flatnonzero(m_v >= 0.01 * np.asarray(lim.v_max))}
+                raise ValueError(
+                    f"joints {bad} [rad/s]: float32 ctrl rounding alone moves the velocity by over 1 % of v_max per "
+                    "control step (a stiff servo on a nearly massless link); add armature or lower the servo's kp"
+                )
+            lim = lim.replace(q_min=lim.q_min + m_v * self.dt, q_max=lim.q_max - m_v * self.dt, v_max=lim.v_max - m_v)
         self.limits = lim
         if method in ("viability", "jerk", "naive"):
             jl.make_discretisation(self.dt, self.integrator, self.substeps)  # validates eagerly

@@ -124,9 +124,10 @@ class Reach(PipelineEnv):
         self._ctrl_mid = jnp.asarray((lo + hi) / 2, jnp.float32)
         self._ctrl_half = jnp.asarray((hi - lo) / 2, jnp.float32)
         lim = mjm.jnt_limited.astype(bool)
-        span = mjm.jnt_range[:, 1] - mjm.jnt_range[:, 0]
-        q_lo = np.where(lim, mjm.jnt_range[:, 0] + reset_margin * span, -np.pi)
-        q_hi = np.where(lim, mjm.jnt_range[:, 1] - reset_margin * span, np.pi)
+        rng = np.where(lim[:, None], mjm.jnt_range, 0.0)  # Brax writes an unlimited joint's range as +-inf
+        span = rng[:, 1] - rng[:, 0]
+        q_lo = np.where(lim, rng[:, 0] + reset_margin * span, -np.pi)
+        q_hi = np.where(lim, rng[:, 1] - reset_margin * span, np.pi)
         hinge = np.isin(mjm.jnt_type, [int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)])
         if mjm.nq != mjm.njnt or not np.all(hinge):
             raise ValueError(f"{xml_path}: Reach expects a fixed-base arm of hinge/slide joints only")
@@ -230,3 +231,9 @@ def make_servo_panda_front_reach(**kwargs) -> Reach:
 def make_ur5e_reach(**kwargs) -> Reach:
     """Reach with the shipped UR5e (``assets/ur5e.xml``, Menagerie's servos), 5 substeps of 2 ms."""
     return Reach(ASSETS / "ur5e.xml", **kwargs)
+
+
+def make_gen3_reach(**kwargs) -> Reach:
+    """Reach with the shipped Kinova Gen3 (``assets/gen3.xml``, Menagerie's servos, four unlimited joints), 5
+    substeps of 2 ms."""
+    return Reach(ASSETS / "gen3.xml", **kwargs)

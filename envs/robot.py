@@ -179,6 +179,12 @@ class Robot:
       rk4_stiffness: ``(nv,)`` for RK4 the diagonal stiffness ``K`` (joint springs and servo kp) whose force
         changes by ``-K h v / 2`` on average over RK4's stages with ``ctrl`` held (first order; the
         actuation adds it back); 0 for the other integrators.
+      ctrl_quantum: ``(n,)`` [rad/s^2] the largest acceleration error that rounding each actuator's ``ctrl``
+        (and the position and velocity in its force) to float32 can cause, over the sampled states:
+        ``max_s sum_j |[(M + h D)^-1]_ij| dtau_j`` with ``dtau_j = |gear| (|gain| ulp(C) + |b1| ulp(Q) + |b2|
+        ulp(v_max))`` (``C``, ``Q``: the largest ``|ctrl|`` and ``|q|``). A stiff servo on a light link
+        realises its acceleration only to this (MJX computes in float32); ``SafeAcceleration``'s
+        ``realisation_margin`` keeps the limits clear of it (``_ctrl_quantum``).
       brake_shortfall: ``(n,)`` fraction of the sampled states at which the actuator cannot brake the
         joint at ``a_max`` with the others anywhere in their boxes (0 for a worst-case ``a_max``).
     """
@@ -204,6 +210,7 @@ class Robot:
     nu: int
     a_max_source: str
     brake_shortfall: np.ndarray
+    ctrl_quantum: np.ndarray
     rk4_stiffness: np.ndarray
 
     @property
@@ -317,7 +324,7 @@ class Robot:
         rng_np = np.random.default_rng(seed)
         qs, vs = _sample_states(mjm, qadr, limited, q_min, q_max, v, torque_samples, rng_np)
         for quantile in _QUANTILES if torque_quantile is None else (torque_quantile,):
-            s_brake, tau, shortfall = _braking_capacity(mjm, partial, qs, vs, quantile, control_dt)
+            s_brake, tau, shortfall, M_samples = _braking_capacity(mjm, partial, qs, vs, quantile, control_dt)
             if a is not None or np.all(s_brake > 0):
                 break
         if a is None and quantile > 0 and np.all(s_brake > 0) and torque_quantile is None:
@@ -337,7 +344,10 @@ class Robot:
             a, source = torque_margin * s_brake, "torque"
             a = np.minimum(a, _condition_11_cap(limited, q_min, q_max, v, control_dt))
         limits = jl.JointLimits(q_min, q_max, v, a, j)
-        return cls(limits=limits, tau_max=tau, a_max_source=source, brake_shortfall=shortfall, **partial)
+        quantum = _ctrl_quantum(M_samples, gear, gain, bias, ctrl_range, q_min, q_max, limited, v)
+        return cls(
+            limits=limits, tau_max=tau, a_max_source=source, brake_shortfall=shortfall, ctrl_quantum=quantum, **partial
+        )
 
     def bound_positions(self, q, dt: float, limits: jl.JointLimits | None = None):
         """``(q_eff, limits)`` for ``jl.acc_bounds``: an unlimited joint is put at 0 in a range ``±R`` so wide
@@ -530,8 +540,9 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: flo
     A joint that cannot brake alone keeps its (<= 0) ``s_diag``. "At every state" is the ``quantile`` of the
     sampled states (0: the worst one; weak actuators, e.g. Brax's pusher, cannot brake against the
     Coriolis forces of all joints at ``v_max`` at once, a state the arm never reaches). Returns
-    ``(s, tau, infeasible)``: ``tau`` the braking torque available (same quantile), ``infeasible`` the
-    fraction of sampled states where ``s`` cannot be met (``Robot.brake_shortfall``)."""
+    ``(s, tau, infeasible, M)``: ``tau`` the braking torque available (same quantile), ``infeasible`` the
+    fraction of sampled states where ``s`` cannot be met (``Robot.brake_shortfall``), ``M`` ``(N, n, n)`` the
+    shielded joints' ``M + h D`` at the sampled states."""
     d = mujoco.MjData(mjm)
     dofs, qadr = robot["dof_adr"], robot["qpos_adr"]
     n = len(dofs)
@@ -571,4 +582,22 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: flo
     s2 = np.where(s_diag > 0, max(scale, 0.0) * a_nom, s_diag)
     infeasible = np.mean(avail - np.abs(M) @ s2.clip(0.0) < 0.0, axis=0)
     tau = np.quantile(avail, quantile, axis=0)
-    return s2, tau, infeasible
+    return s2, tau, infeasible, M
+
+
+def _ctrl_quantum(M, gear, gain, bias, ctrl_range, q_min, q_max, limited, v_max):
+    """``Robot.ctrl_quantum`` ``(n,)`` from the sampled ``M + h D`` ``(N, n, n)`` and the actuator arrays.
+
+    One float32 rounding of a servo's ``ctrl`` moves its force by ``gain ulp(ctrl)`` (``kp ulp(q)`` for a
+    position servo: the target is the position plus a small offset); the products with ``q`` and ``v`` in
+    its bias round likewise. Each term is counted at a full ulp of the largest magnitude (twice the
+    rounding's half ulp). Unlimited joints and unlimited ``ctrl``: ``|q|`` up to ``2 pi`` is assumed (one
+    turn either way; a joint wound further loses float32 resolution in its position itself)."""
+    ulp = lambda x: np.spacing(np.float32(x)).astype(np.float64)  # noqa: E731
+    q_big = np.where(limited, np.maximum(np.abs(q_min), np.abs(q_max)), 2 * np.pi)
+    finite = np.isfinite(ctrl_range).all(axis=1)
+    c_big = np.where(finite, np.max(np.abs(np.where(finite[:, None], ctrl_range, 0.0)), axis=1), q_big)
+    dtau = np.abs(gear) * (
+        np.abs(gain) * ulp(c_big) + np.abs(bias[:, 1]) * ulp(q_big) + np.abs(bias[:, 2]) * ulp(v_max)
+    )
+    return np.max(np.abs(np.linalg.inv(M)) @ dtau, axis=0)
