@@ -101,8 +101,9 @@ class SafeAcceleration:
             lim = lim.replace(q_min=lim.q_min + m_q, q_max=lim.q_max - m_q, v_max=lim.v_max * (1.0 - RK4_MARGIN))
         if realisation_margin:
             m_v = QUANTUM_SAFETY * self.n_frames * robot.timestep * np.asarray(robot.ctrl_quantum)
-            if np.any(m_v >= 0.01 * np.asarray(lim.v_max)):
-                bad = {robot.names[i]: float(m_v[i]) for i in np.flatnonzero(m_v >= 0.01 * np.asarray(lim.v_max))}
+            too_big = np.flatnonzero(m_v >= 0.01 * np.asarray(lim.v_max))
+            if too_big.size:
+                bad = {robot.names[i]: float(m_v[i]) for i in too_big}
                 raise ValueError(
                     f"joints {bad} [rad/s]: float32 ctrl rounding alone moves the velocity by over 1 % of v_max per "
                     "control step (a stiff servo on a nearly massless link); add armature or lower the servo's kp"

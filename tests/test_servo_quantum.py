@@ -9,6 +9,7 @@ limits by the velocity it gives over a control step (``SafeAcceleration(realisat
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -32,7 +33,7 @@ def _shield(margin: bool = True):
 def test_the_quantum_is_the_servos_rounding_through_the_links_inertia():
     """Gen3's four unlimited joints are read (no position limit, ctrl within ±2π); the quantum is larger on the
     light wrist than on the servo Panda (armature 0.1, joint damping 2-40) and tiny against ``a_max``; the
-    margin it gives is a small fraction of ``v_max``, and zero-stiffness models get none."""
+    margin it gives is a small fraction of ``v_max``."""
     gen3 = _shield()
     r = gen3.robot
     assert list(r.limited) == [False, True, False, True, False, True, False]
@@ -66,3 +67,12 @@ def test_gen3_under_adversarial_policies(margin):
     else:
         assert r["count/velocity"] > BATCH * STEPS // 10, r
         assert float(r["max/velocity"]) < 1e-3  # a rounding's worth, not a failure of the bounds
+
+
+def test_a_margin_over_a_percent_of_v_max_is_refused_by_joint_name():
+    """A servo so stiff against its link that its rounding alone moves the velocity by >= 1 % of ``v_max`` per step."""
+    robot = _shield().robot
+    stiff = dataclasses.replace(robot, ctrl_quantum=robot.ctrl_quantum * np.where(np.arange(robot.n) == 4, 1e3, 1.0))
+    with pytest.raises(ValueError, match=r"joints \{'joint_5': .*1 % of v_max"):
+        SafeAcceleration(stiff, 5, "viability", realisation_margin=True)
+    SafeAcceleration(robot, 5, "viability", realisation_margin=True)  # the shipped model is accepted
