@@ -226,7 +226,9 @@ def format_table(rows: dict) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", help="output folder (default results/jerk_training, --quick: results/jerk_training_quick)")
-    p.add_argument("--quick", action="store_true", help="tiny smoke run: config tiny, 64 + 16 episodes")
+    p.add_argument(
+        "--quick", action="store_true", help="tiny smoke run: config tiny (its eval_episodes), 16 motion episodes"
+    )
     p.add_argument("--config", help="training config (default planar_reach_ppo; --quick: tiny)")
     p.add_argument("--steps", type=int, help="num_timesteps of both runs (default: the config's)")
     p.add_argument("--episodes", type=int, help="evaluation episodes (default: the config's eval_episodes)")

@@ -68,6 +68,7 @@ with warnings.catch_warnings():
     from brax.envs.base import PipelineEnv, State, Wrapper
 
 from jaxlimits.envs import nonfinite_guard
+from jaxlimits.internal import batched_like
 from jaxlimits.envs.actuation import MjxActuation
 from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, Decision, SafeAcceleration
@@ -295,7 +296,8 @@ class JointLimitShield(Wrapper):
         dtype = pipeline_state.qvel.dtype
         vec, flag = jnp.zeros((rob.n,), dtype), jnp.zeros((), bool)
         dec0 = Decision(vec, vec, vec, jnp.zeros((rob.n,), bool), flag, flag)
-        (d_end, dec, a_des), recs = jax.lax.scan(substep, (pipeline_state, dec0, vec), jnp.arange(self.n_frames))
+        init = batched_like((pipeline_state, dec0, vec), pipeline_state.qpos)  # one batching round under vmap
+        (d_end, dec, a_des), recs = jax.lax.scan(substep, init, jnp.arange(self.n_frames))
         a = dec.a_safe
         rec = {k: jnp.max(v) for k, v in recs.items()}
         finite_des = jnp.isfinite(a_des)

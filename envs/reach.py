@@ -179,7 +179,8 @@ class Reach(PipelineEnv):
             target = jax.random.uniform(k_t, (3,), jnp.float32, self._box[0], self._box[1])
         else:
             target = self._ee(jax.random.uniform(k_t, self._q_lo.shape, jnp.float32, self._q_lo, self._q_hi))
-        ps = self.pipeline_init(q, jnp.zeros(self.sys.nv, jnp.float32))
+        ft = jnp.result_type(float)  # the physics' dtype: float64 under jax_enable_x64 (MJX computes in it)
+        ps = self.pipeline_init(q.astype(ft), jnp.zeros(self.sys.nv, ft))
         zero = jnp.zeros((), jnp.float32)
         dist = jnp.linalg.norm(ps.site_xpos[self._site] - target)
         return State(ps, self._obs(ps, target), -dist, zero, {"distance": dist}, {"target": target})

@@ -6,6 +6,6 @@ Not part of the public API: names here may change without notice. Everything a u
 """
 
 from jaxlimits._src.qp_linalg import chol_solve, masked_matrix
-from jaxlimits._src.tracing import is_traced
+from jaxlimits._src.tracing import batched_like, is_traced
 
-__all__ = ["chol_solve", "is_traced", "masked_matrix"]
+__all__ = ["batched_like", "chol_solve", "is_traced", "masked_matrix"]

@@ -34,6 +34,23 @@ def resets(front):
     return jax.jit(jax.vmap(front.reset))(jax.random.split(jax.random.PRNGKey(3), 256))
 
 
+def test_reach_and_its_shield_trace_in_float64():
+    """Under ``jax_enable_x64`` the reset's state has the physics' dtype (float64) and keeps it through a step, bare
+    and shielded. Before, reset gave float32 positions that MJX's step made float64: Brax's substep scan (bare) and
+    the shield's decision ``cond`` (shielded) raised a carry-type error."""
+    from jaxlimits.envs import JointLimitShield
+
+    with jax.enable_x64(True):
+        for env in (make_servo_panda_front_reach(), JointLimitShield(make_servo_panda_front_reach())):
+            s0 = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
+            s1 = jax.eval_shape(env.step, s0, jax.ShapeDtypeStruct((env.action_size,), jnp.float32))
+            assert s0.pipeline_state.qpos.dtype == s0.pipeline_state.qvel.dtype == jnp.float64
+            assert jax.tree.structure(s0) == jax.tree.structure(s1)
+            assert jax.tree.leaves(jax.tree.map(lambda a, b: a.dtype == b.dtype, s0, s1)) == [True] * len(
+                jax.tree.leaves(s0)
+            )
+
+
 def test_servo_offset_scale_is_the_force_range_over_kp():
     mjm = mujoco.MjModel.from_xml_path(str(PANDA_SERVO))
     np.testing.assert_allclose(servo_offset_scale(mjm), [0.1, 0.1, 100 / 750, 100 / 750, 0.04, 0.04, 0.04])
@@ -166,12 +183,12 @@ def test_servo_panda_front_reach_trains_end_to_end_on_a_tiny_budget(tmp_path):
         True,
     )
     d = config.load("tiny").to_dict()
-    d.update(env=shipped.env, action_mode=shipped.action_mode, eval_episodes=16)
+    d.update(env=shipped.env, action_mode=shipped.action_mode)  # tiny's eval_episodes: the in-training evaluator's
     cfg = config.from_dict(d)
     res = experiment.train_and_evaluate(cfg, tmp_path / "run", show_progress=False)
     tr, ev = res["training"], res["evaluation"]
     assert tr["env_steps"] == brax_ppo.total_env_steps(cfg)
-    assert ev["episodes"] == 16
+    assert ev["episodes"] == cfg.eval_episodes
     for k in ("position", "velocity", "torque"):
         assert tr[f"violations/{k}"] == 0 and ev[f"violations/{k}"] == 0, (k, tr, ev)
     assert 0.0 <= ev["success_rate"] <= 1.0 and np.isfinite(ev["final_distance_mean"])
