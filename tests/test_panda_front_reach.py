@@ -64,8 +64,6 @@ def test_the_shipped_config_builds_it_and_the_ik_reference_reaches_inside_the_li
         assert row[f"violations/{k}"] == 0, (k, row)
 
 
-@pytest.mark.extended  # PPO through a shield on a 7-DoF Panda: the servo Panda's (test_reach_task.py), the project's
-# own arm's wrapper under PPO: the main job's (test_training.py); this Panda under it: the IK reference above
 def test_trains_on_a_tiny_budget_with_zero_violations(tmp_path):
     """The Panda reach's config end to end on a tiny budget (Brax PPO through the shield, reload, evaluate):
     every training and evaluation env-step counted, 0 position, velocity and torque violations."""
