@@ -157,6 +157,15 @@ def test_tally_counts_every_env_step(planar, action_repeat):
     assert counts.counts["count/velocity"] > 0  # the unshielded full-acceleration policy does violate
 
 
+def test_tally_refuses_a_domain_randomisation_it_could_not_count(planar):
+    """Brax's DomainRandomizationVmapWrapper steps the innermost env past the tally's StepTally: refused, not a
+    silent zero."""
+    from jaxlimits.envs import SafetyWrapper
+
+    with pytest.raises(ValueError, match="randomization_fn.*shield/"):
+        tally.wrap_for_training(tally.Tally())(SafetyWrapper(planar, method="none"), randomization_fn=lambda s: (s, s))
+
+
 # ----------------------------------------------------------------------------- evaluation
 
 

@@ -33,7 +33,6 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
-from jaxlimits.internal import batched_like
 
 SUCCESS_RADIUS = 0.05  # [m]: an episode succeeds when its final end-effector distance is below this
 # (an env whose metrics carry "success" decides it itself: WallStrike, success = the wall was struck)
@@ -108,9 +107,7 @@ def play_episode(env, policy, params, key, steps: int, action_repeat: int, obser
         return (state, acc, action), out
 
     held0 = jnp.zeros((env.action_size,), jnp.float32)
-    # under the evaluator's vmap the reset's constant fields (zeros of info and metrics) would make the body batch twice
-    init = batched_like((state0, carry0, held0), state0.obs)
-    (state, acc, _), outs = jax.lax.scan(body, init, jnp.arange(steps))
+    (state, acc, _), outs = jax.lax.scan(body, (state0, carry0, held0), jnp.arange(steps))
     return state0, state, acc, outs
 
 

@@ -122,12 +122,14 @@ def wrap_for_training(tally: Tally):
     """A ``wrap_env_fn`` for Brax's trainers: ``StepTally`` below, ``TallyReporter`` above ``training.wrap``."""
 
     def wrap(env, episode_length=1000, action_repeat=1, randomization_fn=None):
-        inner = brax_training.wrap(
-            StepTally(env),
-            episode_length=episode_length,
-            action_repeat=action_repeat,
-            randomization_fn=randomization_fn,
-        )
+        if randomization_fn is not None:
+            # Brax's DomainRandomizationVmapWrapper steps ``env.unwrapped`` directly, past every wrapper in between
+            # (``StepTally`` and Brax's own ``EpisodeWrapper``): the tally would count nothing, silently
+            raise ValueError(
+                "tally.wrap_for_training cannot count under a randomization_fn: Brax's DomainRandomizationVmapWrapper"
+                " steps the innermost env past StepTally; count from the shield's state.metrics['shield/*'] instead"
+            )
+        inner = brax_training.wrap(StepTally(env), episode_length=episode_length, action_repeat=action_repeat)
         return TallyReporter(inner, tally)
 
     return wrap

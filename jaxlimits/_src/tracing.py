@@ -20,7 +20,8 @@ def batched_like(tree: Any, ref: jax.Array) -> Any:
     For the initial carry of a ``lax.scan`` under ``vmap``: JAX's scan batching rule batches the body again
     for every round in which a carry leaf that started unbatched comes out batched (a fixpoint; nested scans
     multiply the rounds), and tracing an MJX step is seconds per round. A carry batched from the start is
-    batched in one round (measured: the shielded servo Panda's evaluator traces in 14 s instead of 22 s).
+    batched in one round (measured: with the Brax shield's substep scan made batched, the shielded servo Panda's
+    evaluator traces in 7.4 s instead of 10.3 s).
     Every leaf becomes ``select(p, x, x)`` with ``p`` computed from ``ref``: the value is ``x`` (XLA folds the
     select); outside ``vmap``, or for a ``ref`` that is not batched, nothing changes. Leaves that are typed PRNG
     keys are returned as they are.
