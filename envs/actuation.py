@@ -275,7 +275,7 @@ class MjxActuation:
         joints is ``asked_acceleration(d, M_eff)`` (only a step's first substep needs it).
         """
         sys = self.sys
-        d = d.replace(ctrl=ctrl)
+        d = d.replace(ctrl=jnp.asarray(ctrl, d.ctrl.dtype))  # the state's dtype: a scan carries it
         d = mjx.fwd_position(sys, d)
         d = mjx.sensor_pos(sys, d)
         d = mjx.fwd_velocity(sys, d)

@@ -188,8 +188,10 @@ class Reach(PipelineEnv):
     def ctrl(self, pipeline_state, action: jax.Array) -> jax.Array:
         """The actuators' ``ctrl`` ``(nu,)`` for ``action`` ``(nu,)`` at ``pipeline_state`` (module docstring)."""
         if self.action_mode == "servo_offset":
-            return pipeline_state.qpos[self._servo_qadr] + action * self._offset_scale
-        return self._ctrl_mid + action * self._ctrl_half
+            ctrl = pipeline_state.qpos[self._servo_qadr] + action * self._offset_scale
+        else:
+            ctrl = self._ctrl_mid + action * self._ctrl_half
+        return ctrl.astype(pipeline_state.qpos.dtype)  # the physics' dtype (float64 under jax_enable_x64)
 
     @_mjx_tracing
     def step(self, state: State, action: jax.Array) -> State:

@@ -5,6 +5,7 @@ budget through the shield (0 violations, every env-step counted)."""
 
 from __future__ import annotations
 
+import functools
 import json
 
 import jaxlimits.envs  # noqa: F401  (XLA flags first)
@@ -34,14 +35,17 @@ def resets(front):
     return jax.jit(jax.vmap(front.reset))(jax.random.split(jax.random.PRNGKey(3), 256))
 
 
-def test_reach_and_its_shield_trace_in_float64():
+@pytest.mark.parametrize("action", ["servo_offset", "ctrl"])
+def test_reach_and_its_shield_trace_in_float64(action):
     """Under ``jax_enable_x64`` the reset's state has the physics' dtype (float64) and keeps it through a step, bare
-    and shielded. Before, reset gave float32 positions that MJX's step made float64: Brax's substep scan (bare) and
-    the shield's decision ``cond`` (shielded) raised a carry-type error."""
+    and shielded, a float32 action given. Before, reset gave float32 positions that MJX's step made float64, and
+    ``ctrl`` actions a float32 ``ctrl``: Brax's substep scan (bare) and the shield's (its decision's ``cond``, its
+    carry's ``ctrl``) raised a carry-type error."""
     from jaxlimits.envs import JointLimitShield
 
     with jax.enable_x64(True):
-        for env in (make_servo_panda_front_reach(), JointLimitShield(make_servo_panda_front_reach())):
+        make = functools.partial(make_servo_panda_front_reach, action=action)
+        for env in (make(), JointLimitShield(make())):
             s0 = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
             s1 = jax.eval_shape(env.step, s0, jax.ShapeDtypeStruct((env.action_size,), jnp.float32))
             assert s0.pipeline_state.qpos.dtype == s0.pipeline_state.qvel.dtype == jnp.float64
