@@ -50,9 +50,7 @@ def test_reach_and_its_shield_trace_in_float64(action):
             s1 = jax.eval_shape(env.step, s0, jax.ShapeDtypeStruct((env.action_size,), jnp.float32))
             assert s0.pipeline_state.qpos.dtype == s0.pipeline_state.qvel.dtype == jnp.float64
             assert jax.tree.structure(s0) == jax.tree.structure(s1)
-            assert jax.tree.leaves(jax.tree.map(lambda a, b: a.dtype == b.dtype, s0, s1)) == [True] * len(
-                jax.tree.leaves(s0)
-            )
+            assert all(jax.tree.leaves(jax.tree.map(lambda a, b: a.dtype == b.dtype, s0, s1)))
 
 
 def test_servo_offset_scale_is_the_force_range_over_kp():

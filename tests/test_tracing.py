@@ -1,5 +1,5 @@
 """``jaxlimits.internal.batched_like``: a scan carry batched from the start batches the scan's body once under
-``vmap``, with the values unchanged (the evaluator's and the Brax shield's scans use it)."""
+``vmap``, with the values unchanged (the Brax shield's substep scan uses it)."""
 
 from __future__ import annotations
 

@@ -248,7 +248,8 @@ def test_main_job_trains_and_evaluates_on_a_tiny_budget(main_job, monkeypatch):
     assert vi["training"]["violations/position"] == 0 and vi["training"]["violations/velocity"] == 0
     # tiny's eval_episodes equal its num_eval_envs: the final evaluation is the in-training evaluator's program
     # (a persistent-cache hit instead of a second MJX compile)
-    assert vi["evaluation"]["episodes"] == config.load("tiny").eval_episodes == config.load("tiny").ppo.num_eval_envs
+    tiny = config.load("tiny")
+    assert vi["evaluation"]["episodes"] == tiny.eval_episodes == tiny.ppo.num_eval_envs
     assert vi["evaluation"]["violations/position"] == 0 and vi["evaluation"]["violations/velocity"] == 0
     ref = results["reference"]  # the scripted IK controller on the same episodes (velocity actions + IK observation)
     assert (

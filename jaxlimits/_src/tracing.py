@@ -26,7 +26,8 @@ def batched_like(tree: Any, ref: jax.Array) -> Any:
     select); outside ``vmap``, or for a ``ref`` that is not batched, nothing changes. Leaves that are typed PRNG
     keys are returned as they are.
     """
-    flag = jnp.any(jnp.asarray(ref) != jnp.asarray(ref))  # a scalar that depends on ref (NaN never enters: unused)
+    ref = jnp.asarray(ref)
+    flag = jnp.any(ref != ref)  # a scalar that depends on ref (NaN never enters: unused)
 
     def one(x):
         x = jnp.asarray(x)
