@@ -168,6 +168,10 @@ class SafeAcceleration:
         3. Where not even the safety terms are realisable (``conflict``): step 2's least violation, clipped
            into them (best effort). A non-finite solve falls back to ``a_c`` (counted as a conflict).
 
+        A solve that did not converge counts as failed, as an infeasible one does (its iterate may lie far
+        outside the torque rows: measured once on the UR5e, 72 N m past the elbow's limit, then a ``v_max``
+        overshoot of 0.017 rad/s; ``tests/test_joint_shield.py``).
+
         Under ``vmap`` both solves run (a batch's active-set loop runs until its slowest member is done); for a
         single problem step 2 runs only where step 1 failed. Step 2 starts at ``a_c``, realisable in most
         states, where it stops after its first iteration. (Stacking both steps into one batched solve compiles
@@ -182,7 +186,7 @@ class SafeAcceleration:
             rows = jnp.concatenate([M, -M], axis=-2)
             h = jnp.concatenate([torque.tau_hi + f, -(torque.tau_lo + f)], axis=-1)
             res = jl.solve_box_qp(a_from, b.lower, b.upper, M, G=rows, h=h, gradient=self.gradient)
-            ok = jnp.all(jnp.isfinite(res.x), axis=-1)
+            ok = jnp.all(jnp.isfinite(res.x), axis=-1) & res.converged
             return res.x, res.infeasible | ~ok
 
         def solve(a_from, lo, hi):
@@ -196,7 +200,7 @@ class SafeAcceleration:
             res = jl.solve_box_qp(tau, torque.tau_lo, torque.tau_hi, Minv, G=G, h=h, gradient=self.gradient)
             a = a0 + (Minv @ res.x[..., None])[..., 0]
             # never a NaN to the simulator: a failed solve (ill-conditioned M in float32) is not used
-            ok = jnp.all(jnp.isfinite(a), axis=-1)
+            ok = jnp.all(jnp.isfinite(a), axis=-1) & res.converged
             return a, res.infeasible | ~ok
 
         a_c = jnp.clip(a_in, b.lower, b.upper)

@@ -169,3 +169,31 @@ def test_acceleration_space_first_solve_equals_the_torque_space_one(decide, monk
     np.testing.assert_array_equal(out[True][1], out[False][1])
     gave_way = int(np.sum(out[True][2] > 0))
     assert 0 < gave_way < N  # both branches of the decision are covered
+
+
+def test_a_solve_that_did_not_converge_is_not_used(decide, monkeypatch):
+    """A first (acceleration-space) solve that reports ``converged=False`` gives way to the second solve, as an
+    infeasible one does; before, only ``infeasible`` and non-finite answers did, and a not-converged iterate far
+    outside the torque rows was clipped into the bounds and used (a UR5e decision: 72 N m past its elbow's
+    torque limit, then a velocity overshoot; ``tests/test_qp.py`` has that problem)."""
+    from jaxlimits.envs import joint_shield
+
+    d = decide["viability"]
+    q, v = jnp.asarray([0.0, 0.0], jnp.float32), jnp.asarray([0.2, -0.1], jnp.float32)
+    torque = _torque(jnp.float32, np.eye(2), np.zeros(2), [-10.0, -10.0], [10.0, 10.0])
+    a_des = jnp.asarray([0.3, -0.7], jnp.float32)  # inside the bounds and realisable: the answer is a_des
+    calls = []
+    real = jl.solve_box_qp
+
+    def first_not_converged(*args, **kwargs):
+        res = real(*args, **kwargs)
+        calls.append(len(calls))
+        if len(calls) == 1:  # the acceleration-space solve: a far, not-converged iterate (inside the box)
+            return res._replace(x=jnp.broadcast_to(args[2], res.x.shape), converged=jnp.zeros_like(res.converged))
+        return res
+
+    monkeypatch.setattr(joint_shield.jl, "solve_box_qp", first_not_converged)
+    dec = d(q, v, a_des, None, torque)
+    assert len(calls) == 2  # the second solve ran
+    np.testing.assert_allclose(np.asarray(dec.a_safe), np.asarray(a_des), atol=1e-5)
+    assert not bool(dec.conflict)

@@ -5,9 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
+from scipy.optimize import Bounds, minimize
 
 import jaxlimits as jl
 import qp_reference as ref
+from jaxlimits._src import qp_active_set
 
 
 def _spd(rng, batch, n, cond):
@@ -448,6 +450,102 @@ def test_far_redundant_rows_do_not_make_a_feasible_problem_infeasible(dtype):
     res = jl.solve_box_qp(jnp.zeros(1, dtype), -10.0, 10.0, G=G, h=h)
     assert float(res.x[0]) == 0.0
     assert bool(res.converged) and not bool(res.infeasible) and float(res.violation) == 0.0
+
+
+# A shielded UR5e decision (``JointLimitShield``, viability, the campaign's ``toward_limit``), written in the
+# acceleration: the bounds are the box, the servos' torque limits the rows ``tau_lo <= M a - f <= tau_hi``.
+# The wrist_3 row is met only at its face (least violation 0.0037 N m, below what float32 can certify), and the
+# float32 mass matrix gives it rounding-level coefficients (4.8e-10) on every other joint.
+_UR5E = dict(
+    a_in=[-149.9305877685547, 116.67615509033203, 26.280738830566406, 65.4450912475586, 96.29039001464844, -93.38136291503906],
+    lower=[0.0004053115553688258, -5.497968673706055, -23.037704467773438, -21.37803077697754, -26.46516227722168, -27.265138626098633],
+    upper=[8.344832420349121, -0.00016689299081917852, 23.037704467773438, -7.152556645451114e-05, 26.46516227722168, 27.265138626098633],
+    tau_lo=[-135.0, -135.0, -143.962158203125, -25.19999885559082, -25.19999885559082, 8.182083129882812],
+    tau_hi=[135.0, 135.0, -35.28095245361328, 25.19999885559082, 25.19999885559082, 26.956951141357422],
+    f=[0.6953582763671875, -1.799835205078125, -2.9229202270507812, -0.6734123229980469, 0.09234619140625, -0.0002307891845703125],
+    M=[1.1509253978729248, 0.24307073652744293, -0.16536766290664673, -0.01864434778690338, 0.004781678784638643, 5.758084171247901e-06,
+       0.24307073652744293, 1.5824227333068848, -0.03596181422472, 0.016543203964829445, -0.001167112379334867, 0.00013139177463017404,
+       -0.16536766290664673, -0.03596181422472, 1.543941617012024, 0.07052452117204666, -0.006695072632282972, 0.0001313933898927644,
+       -0.01864434778690338, 0.016543203964829445, 0.07052452117204666, 0.3193431496620178, -0.0014495282666757703, 0.0001313919055974111,
+       0.004781678784638643, -0.001167112379334867, -0.006695072632282972, -0.0014495282666757703, 0.30341818928718567, 4.797610642093275e-10,
+       5.758084171247901e-06, 0.00013139177463017404, 0.0001313933898927644, 0.0001313919055974111, 4.797610642093275e-10, 0.300132155418396],
+)  # fmt: skip
+
+
+def test_a_row_met_only_at_its_face_pins_only_the_coordinates_that_move_it(dtype):
+    """Regression: the least-violation stage pinned every coordinate with a nonzero coefficient in a row it
+    found tight, rounding-level ones too (here all six at their upper bounds), and returned that corner
+    (violating the elbow's row by 72 N m) as not converged, not infeasible; the shield then used it. Now it
+    converges to the least-violation projection (float32: to its tolerance), every row held to ~ the least
+    violation."""
+    d = {k: np.asarray(v, np.float64) for k, v in _UR5E.items()}
+    M = d["M"].reshape(6, 6)
+    G = np.concatenate([M, -M])
+    h = np.concatenate([d["tau_hi"] + d["f"], -(d["tau_lo"] + d["f"])])
+    r_star, _ = ref.least_violation(d["lower"], d["upper"], G, h)
+    assert 1e-3 < np.max(r_star) < 1e-2  # met only at its face: a tie float32 cannot resolve
+    args = [jnp.asarray(a, dtype) for a in (d["a_in"], d["lower"], d["upper"], M, G, h)]
+    # the robust path, where solve_box_qp hands this problem (the fast path does not settle it); jitted alone
+    # it compiles in ~2 s, the whole solve at this shape in ~50 s per dtype
+    res = jax.jit(qp_active_set.solve, static_argnums=7)(*args, jnp.clip(args[0], args[1], args[2]), 82)
+    _assert_in_box(res.x, args[1], args[2])
+    x = np.asarray(res.x, np.float64)
+    assert bool(res.ok)
+    # the reference: SciPy's SLSQP on the rows relaxed by r* (the enumeration takes ~40 s at m = 12)
+    hr = h + r_star + 1e-11 * (1.0 + np.abs(h))
+    xr = minimize(
+        lambda y: 0.5 * (y - d["a_in"]) @ M @ (y - d["a_in"]),
+        np.clip(d["a_in"], d["lower"], d["upper"]),
+        jac=lambda y: M @ (y - d["a_in"]),
+        bounds=Bounds(d["lower"], d["upper"]),
+        constraints=[{"type": "ineq", "fun": lambda y: hr - G @ y, "jac": lambda y: -G}],
+        method="SLSQP",
+        options=dict(maxiter=500, ftol=1e-15),
+    ).x
+    assert np.max(G @ xr - hr) <= 1e-9
+    if dtype == jnp.float64:
+        assert np.max(np.abs(x - xr)) <= 1e-6 * (1.0 + np.max(np.abs(xr))) and bool(res.split.relax)
+    else:
+        # float32 cannot tell this face from a feasible row (its least violation is below the tolerance), and
+        # the set of least violation is thin (1e-3 N m more on the row lets the answer move by ~6 rad/s^2): the
+        # answer is right to its tolerance in the backward sense, every row held to it, no worse an objective
+        obj = lambda y: 0.5 * (y - d["a_in"]) @ M @ (y - d["a_in"])  # noqa: E731
+        assert np.max(G @ x - h) <= np.max(r_star) + 1e-4 * np.max(np.abs(h))
+        assert obj(x) <= obj(xr) * (1.0 + 1e-6)
+
+
+# Found by tests/test_fuzz_core.py (hypothesis, in one test order): a contradicting pair of rows at +-1e30 (the
+# fuzzer's "far" rows), float32, with a box of width 0 (``flat``) or not. ||r*||^2 overflowed, so the certificate
+# of infeasibility was inf > inf (False) and the problem looked feasible (converged False, rows violated by 2);
+# and the fast path's solve overflowed to NaN, which passes every KKT test (NaN compares False): "settled".
+_FAR_PAIR = dict(
+    x_des=[-3.0733056, -1.1863201, -7.237663],
+    lower=[-0.7260766, -1.4604266, -1.9180529],
+    upper=[-0.69302136, 0.16611391, -0.0925418],
+    G=[[1.3664634, -0.6651947, 0.35151008], [0.90347016, 0.0940123, -0.7434993],
+       [-0.90347016, -0.0940123, 0.7434993], [-1.0096182, -0.20917557, -0.15922502]],
+    h=[5.408456e-01, 1.0e30, -1.0e30, -6.538286e-01],
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("flat", [False, True])
+def test_rows_out_of_reach_by_1e30_are_certified_infeasible_in_float32(flat):
+    d = {k: np.asarray(v, np.float32) for k, v in _FAR_PAIR.items()}
+    upper = d["lower"] if flat else d["upper"]
+    W = np.eye(3, dtype=np.float32) * (1.0 if flat else 1e3)
+    res = jl.solve_box_qp(d["x_des"], d["lower"], upper, W, G=d["G"], h=d["h"])
+    _assert_in_box(res.x, d["lower"], upper)
+    assert bool(res.converged) and bool(res.infeasible)
+    assert float(res.violation) == pytest.approx(1e30, rel=1e-6)
+    # the reachable rows hold at the least violation (SciPy's, in float64)
+    G64, h64 = d["G"].astype(np.float64), d["h"].astype(np.float64)
+    lo64 = d["lower"].astype(np.float64)
+    if flat:  # the box is one point (SciPy's BVLS needs lower < upper)
+        r_star = np.maximum(G64 @ lo64 - h64, 0.0)
+    else:
+        r_star, _ = ref.least_violation(lo64, upper.astype(np.float64), G64, h64)
+    near = np.abs(h64) < 1e6
+    assert np.all(G64[near] @ np.asarray(res.x, np.float64) - h64[near] <= r_star[near] + 1e-4)
 
 
 def _redundant_rows(rng, batch):

@@ -285,8 +285,12 @@ def _least_violation_split(lower, upper, G, h, r, relax, tols):
     hi1 = jnp.where(pin_l, lower, upper)
     gmin = jnp.sum(jnp.minimum(G * lo1[None, :], G * hi1[None, :]), axis=1)
     tight = gmin >= he - 30.0 * tol_h
-    pl2 = jnp.any(tight[:, None] & (G > 0), axis=0)
-    pu2 = jnp.any(tight[:, None] & (G < 0), axis=0) & ~pl2
+    # a tight row pins only the coordinates that could move it by more than the tolerance it was found
+    # tight at: a rounding-level coefficient (a float32 mass matrix's 1e-9 off-diagonals) pinned every
+    # coordinate of the row at the face it minimises, however far the answer lies from it
+    moves = jnp.abs(G) * jnp.where(jnp.isfinite(upper - lower), upper - lower, jnp.inf)[None, :] > 30.0 * tol_h[:, None]
+    pl2 = jnp.any(tight[:, None] & (G > 0) & moves, axis=0)
+    pu2 = jnp.any(tight[:, None] & (G < 0) & moves, axis=0) & ~pl2
     pin_l = pin_l | (~pin_u & pl2)
     pin_u = pin_u | (~pin_l & pu2)
     pinned = pin_l | pin_u | (lower >= upper)
@@ -324,15 +328,20 @@ def solve(x_des, lower, upper, W, G, h, x_warm, max_iter) -> Result:
         xbar = zb[:n]
         # infeasible only with a certificate: gap > 0 is impossible if some box point meets every
         # row (a residual r of mere rounding never passes it)
-        gap, err = qp_bvls.certificate(lower, upper, G, h, r)
+        # the certificate is homogeneous in r: taken for r / max(r), so a row ~1e30 out of reach (r ~ 1e30,
+        # ||r||^2 beyond float32) does not make gap and err inf (and the problem look feasible)
+        k = 1.0 / jnp.where(jnp.max(r) > 0, jnp.max(r), 1.0)
+        rs = r * k
+        gap, err = qp_bvls.certificate(lower, upper, G, h, rs)
         relax = jnp.any(r > 30.0 * tols[2]) & (gap > 16.0 * err)
         rr = jnp.where(relax, r, 0.0)
         # r is the least violation to rounding: ||r||^2 - gap = sum_i |q_i| dist(x_i, its bound)
-        # at the BVLS point, rounding-level where q_i ~ 0 (q_i's rounding: the rows' own scales)
-        s = qp_bvls.row_scale(lower, upper, G, h)
+        # at the BVLS point, rounding-level where q_i ~ 0 (q_i's rounding: the rows' own scales); all of it
+        # divided by max(r)^2
+        s = qp_bvls.row_scale(lower, upper, G, h) * k
         eps = jnp.finfo(W.dtype).eps
-        lv_tol = 1e3 * (err + eps * (n + m) * jnp.sum(jnp.where(r > 0, s * s, 0.0)))
-        lv_ok = ~relax | (r @ r - gap <= lv_tol)
+        lv_tol = 1e3 * (err * k + eps * (n + m) * jnp.sum(jnp.where(r > 0, s * s, 0.0)))
+        lv_ok = ~relax | (rs @ rs - gap * k <= lv_tol)
         pin_l, pin_u, drop, eq = _least_violation_split(lower, upper, G, h, r, relax, tols)
         lo = jnp.where(pin_u, upper, lower)
         hi = jnp.where(pin_l, lower, upper)

@@ -207,7 +207,10 @@ def step(p: Problem, k: Consts, s: State) -> State:
     hl = (s.hl & ~(fb & bad_h)) | (fb & bad_l)
     hu = (s.hu & ~(fb & bad_h)) | (fb & bad_u)
     iters = jnp.where(s.settled, s.iters, s.iters + 1)
-    return State(hl, hu, s.ra ^ fr, x, lam, g, count == 0, iters, best, budget)
+    # a non-finite solve (rows ~1e30 held: the Schur complement overflows in float32) fails every test above
+    # (NaN compares False), so it would pass for settled: it goes to the robust path instead
+    finite = jnp.all(jnp.isfinite(x), axis=0) & jnp.all(jnp.isfinite(lam), axis=0)
+    return State(hl, hu, s.ra ^ fr, x, lam, g, (count == 0) & finite, iters, best, budget)
 
 
 def iterate(p: Problem, k: Consts, run: Run, max_iter, stop_count: int) -> Run:
