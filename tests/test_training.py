@@ -98,6 +98,23 @@ def test_apg_config_selects_the_shield_gradient():
     assert shield_gradient(straight.override(algo="ppo")) == "exact"  # PPO does not differentiate the env
 
 
+def test_a_final_evaluation_reuses_the_runs_evaluator_only_for_its_config_and_episodes(monkeypatch):
+    """``brax_ppo.training_evaluator`` hands back the last PPO run's evaluator only for the same config and
+    episode count; ``evaluate.evaluate`` refuses an evaluator built for other episodes (naming both)."""
+    import types
+
+    from jaxlimits.training import brax_ppo, evaluate
+
+    cfg = config.load("tiny")
+    built = types.SimpleNamespace(episodes=8, episode_length=cfg.episode_length, action_repeat=cfg.action_repeat)
+    monkeypatch.setattr(brax_ppo, "_LAST_EVALUATOR", [(brax_ppo._evaluator_key(cfg, 8), built)])
+    assert brax_ppo.training_evaluator(cfg, 8) is built
+    assert brax_ppo.training_evaluator(cfg, 16) is None
+    assert brax_ppo.training_evaluator(cfg.override(seed=1), 8) is None
+    with pytest.raises(ValueError, match=r"built for .* \(8, 20, 2\), asked for \(16, 20, 2\)"):
+        evaluate.evaluate(None, None, None, episodes=16, episode_length=20, action_repeat=2, evaluator=built)
+
+
 # ----------------------------------------------------------------------------- checkpoints
 
 

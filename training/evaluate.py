@@ -187,7 +187,7 @@ class Evaluator:
     def __init__(self, env, policy, *, episodes: int, episode_length: int, action_repeat: int = 1, devices=None):
         if episodes < 1 or episode_length < 1:
             raise ValueError(f"episodes and episode_length must be >= 1, got {episodes}, {episode_length}")
-        self.episodes, self.episode_length = episodes, episode_length
+        self.episodes, self.episode_length, self.action_repeat = episodes, episode_length, action_repeat
         self.devices = list(jax.devices() if devices is None else devices)
         self.mesh = Mesh(np.array(self.devices), ("episodes",))
         self.padded = -(-episodes // len(self.devices)) * len(self.devices)
@@ -266,22 +266,36 @@ def evaluate(
     seed: int = 0,
     devices=None,
     success_radius: float = SUCCESS_RADIUS,
+    evaluator: Evaluator | None = None,
 ) -> dict:
-    """Evaluate ``policy`` over ``episodes`` parallel episodes; returns ``summarize``'s row plus timing."""
+    """Evaluate ``policy`` over ``episodes`` parallel episodes; returns ``summarize``'s row plus timing.
+
+    ``evaluator``: an ``Evaluator`` already built for this env and policy (e.g. a training run's), reused
+    instead of a new one (no new trace); its episodes, length and action repeat must be these."""
     t0 = time.perf_counter()
-    per = rollout_episodes(
-        env,
-        policy,
-        params,
-        episodes=episodes,
-        episode_length=episode_length,
-        action_repeat=action_repeat,
-        seed=seed,
-        devices=devices,
-    )
+    if evaluator is not None:
+        got = (evaluator.episodes, evaluator.episode_length, evaluator.action_repeat)
+        if got != (episodes, episode_length, action_repeat):
+            raise ValueError(
+                f"evaluator built for (episodes, episode_length, action_repeat) {got}, asked for "
+                f"{(episodes, episode_length, action_repeat)}"
+            )
+        per = evaluator(params, seed)
+    else:
+        per = rollout_episodes(
+            env,
+            policy,
+            params,
+            episodes=episodes,
+            episode_length=episode_length,
+            action_repeat=action_repeat,
+            seed=seed,
+            devices=devices,
+        )
     wall = time.perf_counter() - t0
     row = summarize(per, episode_length, success_radius)
-    row.update(wall_s=wall, env_steps_per_s=row["env_steps"] / wall, devices=len(devices or jax.devices()))
+    n_devices = len(evaluator.devices) if evaluator is not None else len(devices or jax.devices())
+    row.update(wall_s=wall, env_steps_per_s=row["env_steps"] / wall, devices=n_devices)
     return row
 
 

@@ -47,14 +47,18 @@ def evaluate_run(run_dir, episodes: int | None = None) -> EvaluatedRun:
     cfg, policy, params = algos.load_policy(run_dir)
     env = brax_ppo.env_from_config(cfg)
     seed = cfg.seed + 1
+    episodes = cfg.eval_episodes if episodes is None else episodes
     row = evaluate.evaluate(
         env,
         policy,
         params,
-        episodes=cfg.eval_episodes if episodes is None else episodes,
+        episodes=episodes,
         episode_length=cfg.episode_length,
         action_repeat=cfg.action_repeat,
         seed=seed,
+        # the run's in-training evaluator when this process trained it with as many episodes (the same env and
+        # policy, built from the same config): the reloaded parameters without a second trace
+        evaluator=brax_ppo.training_evaluator(cfg, episodes) if cfg.algo == "ppo" else None,
     )
     return EvaluatedRun(cfg, env, policy, params, row, seed)
 
