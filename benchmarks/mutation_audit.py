@@ -60,6 +60,7 @@ SEMI_REF = "tests/test_semi_implicit_reference.py"
 CLOSED = "tests/test_semi_implicit_closed_forms.py"
 JERK = "tests/test_jerk.py"
 IMPACT = "tests/test_impact.py"
+QP = "tests/test_qp.py"
 
 MUTANTS = [
     Mutant(
@@ -249,6 +250,30 @@ MUTANTS = [
             f"{IMPACT}::test_coulomb_constraint_rows_vs_direct",
         ),
         "the speed cap uses only the central jump of a model with a spread",
+    ),
+    Mutant(
+        "qp_tight_row_pins_rounding_coefficients",
+        "jaxlimits/_src/qp_active_set.py",
+        "upper - lower, jnp.inf)[None, :] > 30.0 * tol_h[:, None]",
+        "upper - lower, jnp.inf)[None, :] > 0.0 * tol_h[:, None]",
+        (f"{QP}::test_a_row_met_only_at_its_face_pins_only_the_coordinates_that_move_it",),
+        "a row tight to tolerance pins the coordinates of its rounding-level coefficients too (a UR5e decision)",
+    ),
+    Mutant(
+        "qp_certificate_unscaled",
+        "jaxlimits/_src/qp_active_set.py",
+        "k = 1.0 / jnp.where(jnp.max(r) > 0, jnp.max(r), 1.0)",
+        "k = jnp.ones((), r.dtype)",
+        (f"{QP}::test_rows_out_of_reach_by_1e30_are_certified_infeasible_in_float32",),
+        "the infeasibility certificate of rows ~1e30 out of reach overflows in float32 (inf > inf)",
+    ),
+    Mutant(
+        "qp_nonfinite_iterate_settled",
+        "jaxlimits/_src/qp_pdas.py",
+        "(count == 0) & finite, iters",
+        "count == 0, iters",
+        (f"{QP}::test_rows_out_of_reach_by_1e30_are_certified_infeasible_in_float32",),
+        "the fast path calls a NaN iterate settled (NaN fails no KKT test)",
     ),
 ]
 
