@@ -273,29 +273,20 @@ def evaluate(
     ``evaluator``: an ``Evaluator`` already built for this env and policy (e.g. a training run's), reused
     instead of a new one (no new trace); its episodes, length and action repeat must be these."""
     t0 = time.perf_counter()
-    if evaluator is not None:
-        got = (evaluator.episodes, evaluator.episode_length, evaluator.action_repeat)
-        if got != (episodes, episode_length, action_repeat):
-            raise ValueError(
-                f"evaluator built for (episodes, episode_length, action_repeat) {got}, asked for "
-                f"{(episodes, episode_length, action_repeat)}"
-            )
-        per = evaluator(params, seed)
-    else:
-        per = rollout_episodes(
-            env,
-            policy,
-            params,
-            episodes=episodes,
-            episode_length=episode_length,
-            action_repeat=action_repeat,
-            seed=seed,
-            devices=devices,
+    if evaluator is None:
+        evaluator = Evaluator(
+            env, policy, episodes=episodes, episode_length=episode_length, action_repeat=action_repeat, devices=devices
         )
+    got = (evaluator.episodes, evaluator.episode_length, evaluator.action_repeat)
+    if got != (episodes, episode_length, action_repeat):
+        raise ValueError(
+            f"evaluator built for (episodes, episode_length, action_repeat) {got}, asked for "
+            f"{(episodes, episode_length, action_repeat)}"
+        )
+    per = evaluator(params, seed)
     wall = time.perf_counter() - t0
     row = summarize(per, episode_length, success_radius)
-    n_devices = len(evaluator.devices) if evaluator is not None else len(devices or jax.devices())
-    row.update(wall_s=wall, env_steps_per_s=row["env_steps"] / wall, devices=n_devices)
+    row.update(wall_s=wall, env_steps_per_s=row["env_steps"] / wall, devices=len(evaluator.devices))
     return row
 
 

@@ -56,9 +56,9 @@ def evaluate_run(run_dir, episodes: int | None = None) -> EvaluatedRun:
         episode_length=cfg.episode_length,
         action_repeat=cfg.action_repeat,
         seed=seed,
-        # the run's in-training evaluator when this process trained it with as many episodes (the same env and
-        # policy, built from the same config): the reloaded parameters without a second trace
-        evaluator=brax_ppo.training_evaluator(cfg, episodes) if cfg.algo == "ppo" else None,
+        # the run's in-training evaluator when this process trained it (PPO) with as many episodes (the same env
+        # and policy, built from the same config): the reloaded parameters without a second trace
+        evaluator=brax_ppo.training_evaluator(cfg, episodes),
     )
     return EvaluatedRun(cfg, env, policy, params, row, seed)
 
