@@ -57,6 +57,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from jaxlimits.envs import mjx_stages
+
 import jaxlimits as jl
 from jaxlimits.envs.robot import Robot, _implicit_damping, _rk4_stiffness, actuator_arrays, shrink, torque_range
 
@@ -243,8 +245,8 @@ class MjxActuation:
         self._inset = (MJX_CORRECTION_INSET * np.broadcast_to(robot.limits.a_max, (robot.n,))).astype(f32)
         integ = int(sys.opt.integrator)
         self._integrate = {
-            int(mujoco.mjtIntegrator.mjINT_EULER): mjx.euler,
-            int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST): mjx.implicit,
+            int(mujoco.mjtIntegrator.mjINT_EULER): mjx_stages.euler,
+            int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST): mjx_stages.implicit,
             int(mujoco.mjtIntegrator.mjINT_RK4): mjx.rungekutta4,
         }[integ]
 
@@ -276,13 +278,13 @@ class MjxActuation:
         """
         sys = self.sys
         d = d.replace(ctrl=jnp.asarray(ctrl, d.ctrl.dtype))  # the state's dtype: a scan carries it
-        d = mjx.fwd_position(sys, d)
-        d = mjx.sensor_pos(sys, d)
-        d = mjx.fwd_velocity(sys, d)
-        d = mjx.sensor_vel(sys, d)
-        d = mjx.fwd_actuation(sys, d)
-        d = mjx.fwd_acceleration(sys, d)
-        M_eff = mjx.full_m(sys, d) + jnp.diag(jnp.asarray(self._damping, d.qvel.dtype))
+        d = mjx_stages.fwd_position(sys, d)
+        d = mjx_stages.sensor_pos(sys, d)
+        d = mjx_stages.fwd_velocity(sys, d)
+        d = mjx_stages.sensor_vel(sys, d)
+        d = mjx_stages.fwd_actuation(sys, d)
+        d = mjx_stages.fwd_acceleration(sys, d)
+        M_eff = mjx_stages.full_m(sys, d) + jnp.diag(jnp.asarray(self._damping, d.qvel.dtype))
         dofs = self._arrays[0]
         f_env = d.qfrc_smooth
         f_other = f_env.at[dofs].add(-self._arrays[2] * d.actuator_force[self._act]) - self._stiff * d.qvel
@@ -304,12 +306,12 @@ class MjxActuation:
         """Actuation, smooth acceleration and the constraint solve at ``d``'s state with the shielded ``ctrl``."""
         sys = self.sys
         d = d.replace(ctrl=d.ctrl.at[self._act].set(ctrl))
-        d = mjx.fwd_actuation(sys, d)
-        d = mjx.fwd_acceleration(sys, d)
+        d = mjx_stages.fwd_actuation(sys, d)
+        d = mjx_stages.fwd_acceleration(sys, d)
         # mjx.forward's own test for "no constraint rows" (a shape, static under jit)
         if d._impl.efc_J.size == 0:
             return d.replace(qacc=d.qacc_smooth)
-        return mjx.sensor_acc(sys, mjx.solve(sys, d))
+        return mjx_stages.sensor_acc(sys, mjx_stages.solve(sys, d))
 
     def finish_substep(self, d, M_eff, f_other, a, band=None):
         """Set the shielded ctrl realising ``a`` ``(n,)``, then actuation, constraints and the integrator;
@@ -337,7 +339,7 @@ class MjxActuation:
         if band is not None and (d._impl.ncon or self._other_rows) and self._integrate is not mjx.rungekutta4:
             # passes: a correction that makes or breaks a contact row is corrected again from the new rows
             dtau = jnp.zeros_like(a)
-            M = mjx.full_m(self.sys, dc)
+            M = mjx_stages.full_m(self.sys, dc)
             inset = jnp.asarray(self._inset, a.dtype)
             for k in range(self._passes):
                 impl = dc._impl

@@ -32,6 +32,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from jaxlimits.envs import mjx_stages
+
 with warnings.catch_warnings():  # brax imports jaxopt, which warns that it is unmaintained
     warnings.simplefilter("ignore", DeprecationWarning)
     from brax.envs.base import Env, State, Wrapper  # noqa: F401 (Wrapper: re-exported for the wrappers)
@@ -302,7 +304,7 @@ class ArmReach(Env):
     @_mjx_tracing
     def ee_position(self, q) -> jax.Array:
         """End-effector position [m] at joint positions ``q`` (MJX forward kinematics); ``(3,)``."""
-        d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=self._f32(q)))
+        d = mjx_stages.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=self._f32(q)))
         return d.site_xpos[self.ee_site]
 
     @_mjx_tracing
@@ -310,8 +312,8 @@ class ArmReach(Env):
         """Jacobian of the end-effector site position at joint positions ``q``, ``(3, n)`` [m/rad]: MJX's
         analytic ``jac`` from one kinematics pass (equal to autodiff of ``ee_position``, tested; a
         forward-mode ``jacfwd`` of the kinematics traced and compiled n tangent passes per call)."""
-        d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=self._f32(q)))
-        return self.ee_jacobian_at(mjx.com_pos(self.sys, d))
+        d = mjx_stages.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=self._f32(q)))
+        return self.ee_jacobian_at(mjx_stages.com_pos(self.sys, d))
 
     def ee_jacobian_at(self, d) -> jax.Array:
         """The end-effector Jacobian ``(3, n)`` at ``d``'s positions, which must have their position stage
@@ -324,7 +326,7 @@ class ArmReach(Env):
         """A state at joint positions ``q``, velocities ``v`` and end-effector target ``target``."""
         d = mjx.make_data(self.sys)
         d = d.replace(qpos=self._f32(q), qvel=self._f32(v))
-        d = mjx.fwd_position(self.sys, d)
+        d = mjx_stages.fwd_position(self.sys, d)
         zero = jnp.zeros((), jnp.float32)
         metrics = {f"violation/{k}": zero for k in VIOLATION_KEYS}
         metrics.update({f"count/{k}": zero for k in VIOLATION_KEYS})
@@ -354,8 +356,8 @@ class ArmReach(Env):
         """``(M, h, d)`` at the state of ``d`` (positions/velocities), ``h = qfrc_bias - qfrc_passive``; ``d``
         with its position and velocity stages computed under ``sys`` (default ``self.sys``)."""
         sys = self.sys if sys is None else sys
-        d = mjx.fwd_velocity(sys, mjx.fwd_position(sys, d))
-        return mjx.full_m(sys, d), d.qfrc_bias - d.qfrc_passive, d
+        d = mjx_stages.fwd_velocity(sys, mjx_stages.fwd_position(sys, d))
+        return mjx_stages.full_m(sys, d), d.qfrc_bias - d.qfrc_passive, d
 
     @functools.cached_property
     def _sys_without_contacts(self):
@@ -369,9 +371,9 @@ class ArmReach(Env):
         M, h, d = self.inverse_dynamics(d)
         tau = M @ a + h
         d = d.replace(ctrl=tau)  # clamped to ctrlrange by fwd_actuation: saturation is realised, and measured
-        d = mjx.fwd_acceleration(self.sys, mjx.fwd_actuation(self.sys, d))
+        d = mjx_stages.fwd_acceleration(self.sys, mjx_stages.fwd_actuation(self.sys, d))
         d = d.replace(qacc=d.qacc_smooth)  # no constraints: limits and contacts are disabled
-        d = mjx.implicit(self.sys, d) if self._implicit else mjx.euler(self.sys, d)
+        d = mjx_stages.implicit(self.sys, d) if self._implicit else mjx_stages.euler(self.sys, d)
         return d, (d.qpos, d.qvel, d.qacc, tau)
 
     @_mjx_tracing
@@ -384,7 +386,7 @@ class ArmReach(Env):
         a = self._f32(a)
         d0 = state.pipeline_state
         d, (qs, vs, accs, taus) = jax.lax.scan(lambda dd, _: self._substep(dd, a), d0, None, length=self.frame_skip)
-        d = mjx.fwd_position(self.sys, d)  # site positions at the new state, for the observation
+        d = mjx_stages.fwd_position(self.sys, d)  # site positions at the new state, for the observation
         metrics = self._limit_metrics(state, d, a, qs, vs, accs, taus)
         target = state.info["target"]
         dist = jnp.linalg.norm(d.site_xpos[self.ee_site] - target)

@@ -27,6 +27,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
+
+from jaxlimits.envs import mjx_stages
 from mujoco.mjx._src import support as _support  # jac_dot: MJX 3.17 has no public name for it
 
 import jaxlimits as jl
@@ -54,7 +56,7 @@ def run(steps: int = 300, kp: float = 10.0, dt_factors=(1.0, 2.0)):
 
     @_mjx_tracing
     def controller(dd):
-        dd = mjx.fwd_velocity(env.sys, mjx.fwd_position(env.sys, dd))
+        dd = mjx_stages.fwd_velocity(env.sys, mjx_stages.fwd_position(env.sys, dd))
         x = dd.site_xpos[env.ee_site]
         jacp, _ = mjx.jac(env.sys, dd, x, body)
         jdp, _ = _support.jac_dot(env.sys, dd, x, body)  # not re-exported by mjx 3.17

@@ -30,6 +30,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from jaxlimits.envs import mjx_stages
+
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from brax.envs.base import PipelineEnv, State
@@ -164,7 +166,7 @@ class Reach(PipelineEnv):
 
     @_mjx_tracing
     def _ee(self, q):
-        d = mjx.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=q))
+        d = mjx_stages.kinematics(self.sys, mjx.make_data(self.sys).replace(qpos=q))
         return d.site_xpos[self._site]
 
     @_mjx_tracing

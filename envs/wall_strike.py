@@ -53,6 +53,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from jaxlimits.envs import mjx_stages
+
 import jaxlimits.impact as _impact
 from jaxlimits.envs.actuation import contact_correction
 from jaxlimits.envs.arm import ASSETS, VIOLATION_KEYS, ArmReach, State, _mjx_tracing
@@ -241,7 +243,7 @@ class WallStrike(ArmReach):
             mocap_pos=wall[None],
             mocap_quat=jnp.asarray(self.wall_quat, jnp.float32)[None],
         )
-        d = mjx.fwd_position(self.sys, d)
+        d = mjx_stages.fwd_position(self.sys, d)
         zero = jnp.zeros((), jnp.float32)
         metrics = {f"violation/{k}": zero for k in VIOLATION_KEYS}
         metrics.update({f"count/{k}": zero for k in VIOLATION_KEYS})
@@ -335,8 +337,8 @@ class WallStrike(ArmReach):
         frc = d.qfrc_constraint
         d_act = d.qfrc_actuator
         v_before, q_before = d.qvel, d.qpos
-        d = mjx.implicit(self.sys, d) if self._implicit else mjx.euler(self.sys, d)
-        ball = self._ball_center(mjx.kinematics(self.sys, d))
+        d = mjx_stages.implicit(self.sys, d) if self._implicit else mjx_stages.euler(self.sys, d)
+        ball = self._ball_center(mjx_stages.kinematics(self.sys, d))
         nrm = jnp.asarray(self.normal, jnp.float32)
         # impact bookkeeping
         first = (imp["hit"] == 0) & in_contact
@@ -367,7 +369,7 @@ class WallStrike(ArmReach):
 
     def _actuate(self, d, tau):
         """The motors' ctrl ``tau`` [N m] (gear 1), then actuation and smooth acceleration (before the solve)."""
-        return mjx.fwd_acceleration(self.sys, mjx.fwd_actuation(self.sys, d.replace(ctrl=tau)))
+        return mjx_stages.fwd_acceleration(self.sys, mjx_stages.fwd_actuation(self.sys, d.replace(ctrl=tau)))
 
     @_mjx_tracing
     def step_acc(self, state: State, a: jax.Array, band=None) -> State:
@@ -391,7 +393,7 @@ class WallStrike(ArmReach):
             lambda c, _: self._substep_contact(c, a, band), (d0, imp0), None, length=self.frame_skip
         )
         step_imp = jnp.sum(frcs, axis=0)
-        d = mjx.fwd_position(self.sys, d)
+        d = mjx_stages.fwd_position(self.sys, d)
         lim = self.limits
         f = self._f32
         zero = jnp.zeros((), jnp.float32)
@@ -439,7 +441,7 @@ class WallStrike(ArmReach):
 
 
 def _solve(m, d):
-    return mjx.solve(m, d)
+    return mjx_stages.solve(m, d)
 
 
 def make_wall_strike(**kwargs) -> WallStrike:

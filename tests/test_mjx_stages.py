@@ -1,0 +1,80 @@
+"""``envs/mjx_stages``: an MJX stage is traced once per concrete model and gives MJX's own results; a traced
+model (Brax's domain randomisation) runs MJX's stage itself."""
+
+import pathlib
+
+import jaxlimits.envs  # noqa: F401  (sets the XLA CPU flags before MuJoCo-MJX / JAX compile anything)
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from mujoco import mjx  # noqa: E402
+
+from jaxlimits.envs import mjx_stages  # noqa: E402
+
+PLANAR = pathlib.Path(__file__).resolve().parents[1] / "envs" / "assets" / "planar3.xml"
+
+
+def _system_and_data():
+    mjm = mujoco.MjModel.from_xml_path(str(PLANAR))
+    sys = mjx.put_model(mjm)
+    d = mjx.make_data(sys).replace(qpos=jnp.asarray([0.3, -0.7, 1.1], jnp.float32), qvel=jnp.ones(3, jnp.float32))
+    return sys, d
+
+
+def _counting(calls):
+    def fwd(m, d):
+        calls.append(1)
+        return mjx.fwd_velocity(m, mjx.fwd_position(m, d))
+
+    return mjx_stages.traced_once(fwd)
+
+
+def test_a_stage_is_traced_once_per_model_and_equals_mjxs_own():
+    sys, d = _system_and_data()
+    calls = []
+    stage = _counting(calls)
+    with jax.numpy_rank_promotion("allow"):
+        # two different programs, one of them vmapped, each calling the stage twice
+        xpos = jax.jit(lambda d: stage(sys, stage(sys, d)).xpos)(d)
+        qs = jnp.stack([d.qpos, -d.qpos])
+        bias = jax.jit(jax.vmap(lambda q: stage(sys, d.replace(qpos=q)).qfrc_bias))(qs)
+        assert len(calls) == 1, "MJX's Python ran again for the same model and shapes"
+        # the same programs with MJX's stages: the same results, bit for bit
+        ref = jax.jit(
+            lambda d: mjx.fwd_velocity(sys, mjx.fwd_position(sys, mjx.fwd_velocity(sys, mjx.fwd_position(sys, d))))
+        )
+        np.testing.assert_array_equal(xpos, ref(d).xpos)
+        ref_bias = jax.jit(
+            jax.vmap(lambda q: mjx.fwd_velocity(sys, mjx.fwd_position(sys, d.replace(qpos=q))).qfrc_bias)
+        )
+        np.testing.assert_array_equal(bias, ref_bias(qs))
+        # another model is another trace
+        other = sys.tree_replace({"body_mass": sys.body_mass * 2.0})
+        jax.jit(lambda d: stage(other, d).qfrc_bias)(d)
+        assert len(calls) == 2
+
+
+def test_a_traced_model_runs_mjxs_stage_itself():
+    """Brax's domain randomisation maps an env over a batch of models: the model's arrays are tracers, there is
+    no model to keep a trace for, and the stage is MJX's own (traced on every call)."""
+    sys, d = _system_and_data()
+    calls = []
+    stage = _counting(calls)
+    masses = jnp.stack([sys.body_mass, sys.body_mass * 3.0])
+    axes = jax.tree.map(lambda _: None, sys).tree_replace({"body_mass": 0})
+
+    def bias(mass):
+        return jax.vmap(lambda m: stage(m, d).qfrc_bias, in_axes=(axes,))(sys.tree_replace({"body_mass": mass}))
+
+    with jax.numpy_rank_promotion("allow"):
+        out = jax.jit(bias)(masses)
+        jax.jit(lambda mass: bias(mass))(masses)  # another program with the same shapes: traced again
+        assert len(calls) == 2
+        for k in range(2):
+            one = sys.tree_replace({"body_mass": masses[k]})
+            np.testing.assert_allclose(
+                out[k], jax.jit(lambda d, m=one: mjx.fwd_velocity(m, mjx.fwd_position(m, d)))(d).qfrc_bias, rtol=1e-6
+            )
+        assert not np.allclose(out[0], out[1])  # the masses reached the stage
