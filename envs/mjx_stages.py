@@ -3,10 +3,14 @@
 Tracing an MJX stage runs MJX's Python over every body level (a Panda's kinematics: ~1 s), and an env step is
 traced again by every program that contains it (the training step, the evaluator, each test's rollout) and
 holds several stages (a substep's, the observation's). Called with a concrete ``sys`` (the usual case: an env's
-own model), each stage here is a ``jax.jit`` of the stage with ``sys`` closed over, kept per model: JAX reuses a
-jitted function's trace for the same argument shapes, so MJX's Python runs once per model and shape, and XLA
-inlines the call, so the compiled program and its results are the same. Measured on the motor Panda's
-vmapped step: 3.5 s → 0.25 s per trace after the first; ``tests/test_mjx_stages.py`` checks the equality.
+own model), each stage here runs MJX's Python once per model, argument shapes and trace context into a jaxpr
+(without the arguments' shardings, which ``jax.jit``'s own cache keys on: an evaluator's sharded episodes traced
+the Panda's position stage three more times), and calls a ``jax.jit`` of that jaxpr's evaluation. XLA inlines
+the call. The results equal MJX's own stages bit for bit in the programs ``tests/test_mjx_stages.py`` checks; in a
+whole evaluator episode XLA may fuse around the call differently (seen: 1 ulp of a return, as before this cache).
+Measured on the motor Panda's vmapped step: 3.5 s → 0.25 s per trace after the first; a tiny-budget PPO run of the
+Panda reach (``tests/test_panda_front_reach.py``; before and after side by side, one core each): 6 traces of the
+position stage → 2, 90 s → 84 s.
 
 With a traced ``sys`` (Brax's domain randomisation maps the env over a batch of models) there is nothing to
 close over, and the stage is MJX's own, traced as before.
@@ -18,38 +22,70 @@ import collections
 import functools
 
 import jax
+import jax.extend
 from mujoco import mjx
 
 from jaxlimits.internal import is_traced
 
-# (stage, id(sys)) -> (sys, jitted stage); ``sys`` is held so that its id cannot be reused while its entry
-# lives. Bounded: a process that builds many envs (a campaign) keeps the most recent models' traces.
-_JITTED: collections.OrderedDict = collections.OrderedDict()
+# (stage, id(sys)) -> (sys, {signature: (jitted stage, output treedef)}); ``sys`` is held so that its id cannot be
+# reused while its entry lives. Bounded: a process that builds many envs (a campaign) keeps the most recent models'.
+_TRACES: collections.OrderedDict = collections.OrderedDict()
 _MAX_MODELS = 64
 
 
-def _jitted(stage, sys):
+def _signature(leaves) -> tuple:
+    """What MJX's trace depends on: the leaves' shapes, dtypes and weak types, and the configuration read while
+    tracing (x64, rank and dtype promotion, matmul precision) and the abstract mesh (``pmap``'s or a sharded
+    program's: the jaxpr's types name it). Not the leaves' shardings: an evaluator's inputs
+    sharded over a mesh carry them in their types, and a trace keyed on them (``jax.jit``'s own) is redone for
+    every variant (measured: three traces of a Panda's position stage in one evaluator)."""
+    avals = tuple((a.shape, a.dtype, a.weak_type) for a in map(jax.typeof, leaves))
+    c = jax.config
+    return avals, (
+        c.jax_enable_x64,
+        c.jax_numpy_rank_promotion,
+        c.jax_numpy_dtype_promotion,
+        c.jax_default_matmul_precision,
+        jax.sharding.get_abstract_mesh(),
+    )
+
+
+def _traces(stage, sys) -> dict | None:
     key = (stage, id(sys))
-    hit = _JITTED.get(key)
+    hit = _TRACES.get(key)
     if hit is not None and hit[0] is sys:
-        _JITTED.move_to_end(key)
+        _TRACES.move_to_end(key)
         return hit[1]
     if any(is_traced(leaf) for leaf in jax.tree_util.tree_leaves(sys)):
         return None
-    jitted = jax.jit(functools.partial(stage, sys))
-    _JITTED[key] = (sys, jitted)
-    if len(_JITTED) > _MAX_MODELS:
-        _JITTED.popitem(last=False)
-    return jitted
+    _TRACES[key] = (sys, {})
+    if len(_TRACES) > _MAX_MODELS:
+        _TRACES.popitem(last=False)
+    return _TRACES[key][1]
 
 
 def traced_once(stage):
-    """``stage(sys, d)`` of ``mujoco.mjx``, its trace kept per concrete ``sys`` (see the module's docstring)."""
+    """``stage(sys, d)`` of ``mujoco.mjx``, its trace kept per concrete ``sys`` (see the module's docstring).
+
+    MJX's Python runs once per model, ``d``'s shapes and trace context, into a jaxpr without shardings; a
+    ``jax.jit`` of that jaxpr's evaluation is the call (re-binding a jaxpr is ~3x cheaper than tracing MJX, and
+    JAX caches the jit's trace and its batching for inputs of the same types)."""
 
     @functools.wraps(stage)
     def call(sys, d):
-        jitted = _jitted(stage, sys)
-        return stage(sys, d) if jitted is None else jitted(d)
+        traces = _traces(stage, sys)
+        if traces is None:
+            return stage(sys, d)
+        leaves, tree = jax.tree_util.tree_flatten(d)
+        key = (tree, *_signature(leaves))
+        if key not in traces:
+            plain = [jax.ShapeDtypeStruct(s, t, weak_type=w) for s, t, w in key[1]]
+            closed, out = jax.make_jaxpr(functools.partial(stage, sys), return_shape=True)(
+                jax.tree_util.tree_unflatten(tree, plain)
+            )
+            traces[key] = (jax.jit(jax.extend.core.jaxpr_as_fun(closed)), jax.tree_util.tree_structure(out))
+        run, out_tree = traces[key]
+        return jax.tree_util.tree_unflatten(out_tree, run(*leaves))
 
     return call
 

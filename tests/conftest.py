@@ -6,6 +6,20 @@ import pathlib
 from jaxlimits._xla_flags import set_cpu_xla_flags
 
 set_cpu_xla_flags()
+
+
+def _pin_xdist_worker_to_its_core() -> None:
+    """With as many pytest-xdist workers as CPUs (`make test`: 2 on CI's 2 cores), give each worker one CPU of
+    its own, before JAX starts: XLA sizes its CPU thread pools from the process's affinity, and two workers
+    whose runtimes each assume every core run slower together than one per core."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    cpus = sorted(os.sched_getaffinity(0))
+    if os.environ.get("JAXLIMITS_PIN_WORKERS", "1") == "1" and worker.startswith("gw") and count == len(cpus) > 1:
+        os.sched_setaffinity(0, {cpus[int(worker[2:]) % len(cpus)]})
+
+
+_pin_xdist_worker_to_its_core()
 # The suite compiles far more than it runs (MJX programs, a minute each): LLVM's optimisation passes are
 # most of an XLA CPU compile, so the tests (and the subprocesses they start) compile without them
 # (measured: 40 -> 28 s on a Brax shield test). The semantics are the same (no fast-math at either

@@ -56,6 +56,50 @@ def test_a_stage_is_traced_once_per_model_and_equals_mjxs_own():
         assert len(calls) == 2
 
 
+def test_an_evaluators_sharded_episodes_reuse_the_trace_and_pmap_gets_its_own(monkeypatch):
+    """The sharded evaluator's episode data carry its mesh in their types, in several variants within one episode
+    (reset's, a scan's carry), unlike the same data in an unsharded program; ``jax.jit``'s own trace cache missed
+    on each (three more traces of the Panda's position stage in an evaluator). Under ``pmap`` (Brax's PPO) a jaxpr's types name pmap's mesh: that trace must
+    not be reused in the evaluator (it raised "Mesh for all inputs should be equal"). Traced, not compiled. (The
+    miss itself was measured in a PPO run, ``train_and_evaluate``: 6 traces -> 2; this smaller sequence does not
+    reproduce it, so it checks the keying, not the old miss.)"""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    from jaxlimits.envs import SafetyWrapper
+    from jaxlimits.training import evaluate
+    from jaxlimits.training.brax_ppo import make_base_env
+
+    calls = []
+
+    def fwd_position(m, d):
+        calls.append(1)
+        return mjx.fwd_position(m, d)
+
+    monkeypatch.setattr(mjx_stages, "fwd_position", mjx_stages.traced_once(fwd_position))
+    env = SafetyWrapper(make_base_env("panda_front_reach"), "viability")
+
+    def policy(params, obs, key, t):
+        return jnp.tanh(params["w"] * obs[: env.action_size])
+
+    def trace_episodes():  # Evaluator.sharded's program, traced (not compiled) on its sharded inputs
+        evaluator = evaluate.Evaluator(env, policy, episodes=2, episode_length=3)
+        keys = jax.random.key_data(jax.random.split(jax.random.PRNGKey(0), 2))
+        keys = jax.device_put(keys, NamedSharding(evaluator.mesh, PartitionSpec("episodes", None)))
+        params = jax.device_put({"w": jnp.float32(0.5)}, NamedSharding(evaluator.mesh, PartitionSpec()))
+        return evaluator._run.trace(params, keys)
+
+    with jax.numpy_rank_promotion("allow"):
+        jax.jit(env.reset).trace(jax.random.PRNGKey(1))  # unsharded types (e.g. Brax's own evaluator)
+    assert len(calls) == 1
+    trace_episodes()
+    assert len(calls) == 1, f"{len(calls) - 1} more traces of the position stage in the evaluator"
+    with jax.numpy_rank_promotion("allow"):
+        jax.make_jaxpr(jax.pmap(lambda k: env.reset(k).obs, axis_name="i"))(jax.random.split(jax.random.PRNGKey(1), 1))
+    assert len(calls) == 2  # pmap's mesh context: its own trace
+    trace_episodes()  # not pmap's trace
+    assert len(calls) == 2
+
+
 def test_a_traced_model_runs_mjxs_stage_itself():
     """Brax's domain randomisation maps an env over a batch of models: the model's arrays are tracers, there is
     no model to keep a trace for, and the stage is MJX's own (traced on every call)."""
