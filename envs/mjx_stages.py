@@ -34,11 +34,11 @@ _MAX_MODELS = 64
 
 
 def _signature(leaves) -> tuple:
-    """What MJX's trace depends on: the leaves' shapes, dtypes and weak types, and the configuration read while
+    """What MJX's trace depends on: the leaves' shapes, dtypes and weak types; the configuration read while
     tracing (x64, rank and dtype promotion, matmul precision) and the abstract mesh (``pmap``'s or a sharded
-    program's: the jaxpr's types name it). Not the leaves' shardings: an evaluator's inputs
-    sharded over a mesh carry them in their types, and a trace keyed on them (``jax.jit``'s own) is redone for
-    every variant (measured: three traces of a Panda's position stage in one evaluator)."""
+    program's: the jaxpr's types name it). Not the leaves' shardings: an evaluator's inputs sharded over a mesh
+    carry them in their types, and a trace keyed on them (``jax.jit``'s own) is redone for every variant
+    (measured: three traces of a Panda's position stage in one evaluator)."""
     avals = tuple((a.shape, a.dtype, a.weak_type) for a in map(jax.typeof, leaves))
     c = jax.config
     return avals, (
@@ -77,9 +77,10 @@ def traced_once(stage):
         if traces is None:
             return stage(sys, d)
         leaves, tree = jax.tree_util.tree_flatten(d)
-        key = (tree, *_signature(leaves))
+        avals, config = _signature(leaves)
+        key = (tree, avals, config)
         if key not in traces:
-            plain = [jax.ShapeDtypeStruct(s, t, weak_type=w) for s, t, w in key[1]]
+            plain = [jax.ShapeDtypeStruct(s, t, weak_type=w) for s, t, w in avals]
             closed, out = jax.make_jaxpr(functools.partial(stage, sys), return_shape=True)(
                 jax.tree_util.tree_unflatten(tree, plain)
             )

@@ -59,10 +59,10 @@ def test_a_stage_is_traced_once_per_model_and_equals_mjxs_own():
 def test_an_evaluators_sharded_episodes_reuse_the_trace_and_pmap_gets_its_own(monkeypatch):
     """The sharded evaluator's episode data carry its mesh in their types, in several variants within one episode
     (reset's, a scan's carry), unlike the same data in an unsharded program; ``jax.jit``'s own trace cache missed
-    on each (three more traces of the Panda's position stage in an evaluator). Under ``pmap`` (Brax's PPO) a jaxpr's types name pmap's mesh: that trace must
-    not be reused in the evaluator (it raised "Mesh for all inputs should be equal"). Traced, not compiled. (The
-    miss itself was measured in a PPO run, ``train_and_evaluate``: 6 traces -> 2; this smaller sequence does not
-    reproduce it, so it checks the keying, not the old miss.)"""
+    on each (three more traces of the Panda's position stage in an evaluator). Under ``pmap`` (Brax's PPO) a
+    jaxpr's types name pmap's mesh: that trace must not be reused in the evaluator (it raised "Mesh for all inputs
+    should be equal"). Traced, not compiled. (The miss itself was measured in a PPO run, ``train_and_evaluate``:
+    6 traces -> 2; this smaller sequence does not reproduce it, so it checks the keying, not the old miss.)"""
     from jax.sharding import NamedSharding, PartitionSpec
 
     from jaxlimits.envs import SafetyWrapper
