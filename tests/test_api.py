@@ -160,3 +160,20 @@ def test_xla_flags_are_appended_without_clobbering():
         False,
         True,
     ]
+
+
+def test_gc_thresholds_are_raised_not_lowered():
+    """``raise_gc_thresholds`` takes the larger of each generation's threshold (a user's higher one is kept); the
+    suite runs with them (conftest), so ``gc.get_threshold()`` is at least ``TRACING_THRESHOLDS`` here."""
+    import gc
+
+    from jaxlimits._gc import TRACING_THRESHOLDS, raise_gc_thresholds
+
+    assert all(now >= want for now, want in zip(gc.get_threshold(), TRACING_THRESHOLDS))
+    saved = gc.get_threshold()
+    try:
+        gc.set_threshold(700, 200, 10)
+        raise_gc_thresholds((1000, 50, 100))
+        assert gc.get_threshold() == (1000, 200, 100)
+    finally:
+        gc.set_threshold(*saved)

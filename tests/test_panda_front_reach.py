@@ -70,9 +70,11 @@ def test_trains_on_a_tiny_budget_with_zero_violations(tmp_path):
     cfg = config.load("tiny").override(env="panda_front_reach")
     result = experiment.train_and_evaluate(cfg, tmp_path / "run", show_progress=False)
     train, ev = result["training"], result["evaluation"]
-    # the final evaluation reused the run's in-training evaluator (no second trace); a fresh one on the
-    # reloaded checkpoint gives the same row
-    assert brax_ppo.training_evaluator(cfg, cfg.eval_episodes) is not None
+    # the final evaluation reused the run's in-training evaluator and its trace (one, though Brax's trainer runs
+    # under rank promotion "allow" and the suite under "raise"); a fresh one on the reloaded checkpoint gives the
+    # same row
+    evaluator = brax_ppo.training_evaluator(cfg, cfg.eval_episodes)
+    assert evaluator is not None and evaluator._run._cache_size() == 1
     brax_ppo._LAST_EVALUATOR.clear()
     fresh = experiment.evaluate_run(tmp_path / "run", cfg.eval_episodes).row
     for k in ("return_mean", "success_rate", "final_distance_mean", "violations/position", "violations/velocity"):

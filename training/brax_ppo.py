@@ -189,6 +189,9 @@ class _Progress:
         self.file = path.open("a")
         self.t0 = time.perf_counter()
         self.evaluator = None
+        # the caller's rank-promotion setting: Brax's trainer runs under "allow" (``brax_compat``), and an
+        # evaluation traced there would not match the final one's trace context (a second trace and compile)
+        self.rank_promotion = jax.config.jax_numpy_rank_promotion
 
     def wall(self) -> float:
         """Seconds of training so far: the checkpoint's (resumed runs) plus this process's."""
@@ -211,7 +214,8 @@ class _Progress:
             _LAST_EVALUATOR[:] = [(_evaluator_key(self.cfg, self.cfg.num_eval_envs), self.evaluator)]
         # strong types: Brax's step-0 parameters hold weak-typed scalars, later ones do not (one trace, not two)
         params = jax.tree.map(lambda x: jnp.asarray(x).astype(jnp.asarray(x).dtype), params)
-        per = self.evaluator(params, seed=10_000 + len(self.rows))
+        with jax.numpy_rank_promotion(self.rank_promotion):
+            per = self.evaluator(params, seed=10_000 + len(self.rows))
         ev = evaluate.summarize(per, self.cfg.episode_length)
         row = {"step": step, "wall_s": round(self.wall(), 2)}
         row.update({f"eval/{k}": v for k, v in ev.items()})

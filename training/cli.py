@@ -21,6 +21,7 @@ import argparse
 import json
 import sys
 
+from jaxlimits._gc import raise_gc_thresholds
 from jaxlimits._xla_flags import set_cpu_xla_flags
 from jaxlimits.training.config import ENVS, REACH_ENVS
 
@@ -53,6 +54,7 @@ def _config(args, config_name=None, **extra):
 
 def main(argv=None) -> int:
     set_cpu_xla_flags()
+    raise_gc_thresholds()  # tracing the envs and trainers is a large part of a short run (jaxlimits/_gc.py)
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["campaign"]:  # its own parser (shared with benchmarks/safety_campaign.py)
         from jaxlimits.training import campaign
