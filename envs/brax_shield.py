@@ -66,8 +66,9 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore", DeprecationWarning)
     from brax.base import Contact, Motion, Transform
     from brax.envs.base import PipelineEnv, State, Wrapper
+    from brax.mjx import pipeline as brax_mjx_pipeline
 
-from jaxlimits.envs import nonfinite_guard
+from jaxlimits.envs import mjx_stages, nonfinite_guard
 from jaxlimits.internal import batched_like
 from jaxlimits.envs.actuation import MjxActuation
 from jaxlimits.envs.arm import _mjx_tracing
@@ -233,6 +234,8 @@ class JointLimitShield(Wrapper):
         self._outputs = None
         base._shielded_by = self
         base.pipeline_step = self._shielded_pipeline_step  # the physics call
+        if type(base).pipeline_init is PipelineEnv.pipeline_init and base._pipeline is brax_mjx_pipeline:
+            base.pipeline_init = self._staged_pipeline_init  # reset's physics, MJX traced once per model
         # and the env's own step and reset, so the shield runs however the env is reached: Brax's
         # DomainRandomizationVmapWrapper (``randomization_fn`` of its trainers) calls the innermost env's step and
         # reset (``env.unwrapped``) inside its vmap, past every wrapper in between, this one too
@@ -245,6 +248,11 @@ class JointLimitShield(Wrapper):
         return self.robot.limits
 
     # ---- the physics call --------------------------------------------------------------------
+    def _staged_pipeline_init(self, q, qd, act=None, ctrl=None):
+        """``PipelineEnv.pipeline_init`` (Brax's mjx ``init``) with ``mjx.forward`` traced once per model
+        (``mjx_stages.brax_pipeline_init``); the System read at the call (a domain randomisation's)."""
+        return mjx_stages.brax_pipeline_init(self._base.sys, q, qd, act, ctrl, self._base._debug)
+
     @_mjx_tracing
     def _shielded_pipeline_step(self, pipeline_state, ctrl):
         if self._pending is None:

@@ -14,6 +14,10 @@ position stage → 2, 90 s → 84 s.
 
 With a traced ``sys`` (Brax's domain randomisation maps the env over a batch of models) there is nothing to
 close over, and the stage is MJX's own, traced as before.
+
+``brax_pipeline_init`` is a Brax ``PipelineEnv``'s reset physics (``pipeline_init``) with its ``mjx.forward`` traced
+once per model the same way (``JointLimitShield`` installs it): the servo Panda's reset and two evaluators of its
+env traced in 13.9 s instead of 20.0 s (one process, one core each, side by side).
 """
 
 from __future__ import annotations
@@ -104,3 +108,29 @@ implicit = traced_once(mjx.implicit)
 sensor_pos = traced_once(mjx.sensor_pos)
 sensor_vel = traced_once(mjx.sensor_vel)
 sensor_acc = traced_once(mjx.sensor_acc)
+forward = traced_once(mjx.forward)
+
+
+class _MjxWithStagedForward:
+    """``mujoco.mjx`` with ``forward`` the one traced once per model (above)."""
+
+    forward = staticmethod(forward)
+
+    def __getattr__(self, name):
+        return getattr(mjx, name)
+
+
+def brax_pipeline_init(sys, q, qd, act=None, ctrl=None, debug: bool = False):
+    """``brax.mjx.pipeline.init(sys, q, qd, act, ctrl, debug)`` (the reset physics of a Brax ``PipelineEnv`` on the
+    mjx backend: ``make_data``, ``mjx.forward``, Brax's state layout) with its ``mjx.forward`` traced once per model.
+
+    Brax's own function runs, with the module's ``mjx`` name bound to ``_MjxWithStagedForward`` for the call (Brax
+    0.14.2 reads ``mjx.forward`` from its module's globals when ``init`` runs), so Brax's layout code is not copied."""
+    from brax.mjx import pipeline
+
+    real = pipeline.mjx
+    pipeline.mjx = _MjxWithStagedForward()
+    try:
+        return pipeline.init(sys, q, qd, act, ctrl, debug)
+    finally:
+        pipeline.mjx = real

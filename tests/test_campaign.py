@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import optimized_compiles
 from jaxlimits.training import campaign, campaign_policies, campaign_rows
 
 STEPS = 100_000
@@ -23,12 +24,27 @@ EPISODE = 200
 
 @pytest.fixture(scope="module")
 def planar_rows():
-    return campaign.run(["planar arm"], STEPS, shields=("viability", "none"), chunk=STEPS // EPISODE, progress=None)
+    with optimized_compiles():  # 10^6 env-steps in all: run time, not compile time
+        return campaign.run(["planar arm"], STEPS, shields=("viability", "none"), chunk=STEPS // EPISODE, progress=None)
 
 
 def _row(rows, shield, policy):
     (r,) = [r for r in rows if r["shield"] == shield and r["policy"] == policy]
     return r
+
+
+def test_optimized_compiles_asks_xla_for_its_default_optimisation_inside_the_block_only():
+    """The reduced campaign's rows compile at XLA's default optimisation (``optimized_compiles``), every other
+    program of the suite at level 0 (conftest)."""
+    from jax._src import compiler
+
+    def overrides():
+        return dict(compiler.get_compile_options(num_replicas=1, num_partitions=1).env_option_overrides)
+
+    assert "xla_backend_optimization_level" not in overrides()
+    with optimized_compiles():
+        assert overrides()["xla_backend_optimization_level"] == 2
+    assert "xla_backend_optimization_level" not in overrides()
 
 
 def test_every_row_ran_its_steps(planar_rows):

@@ -122,3 +122,40 @@ def test_a_traced_model_runs_mjxs_stage_itself():
                 out[k], jax.jit(lambda d, m=one: mjx.fwd_velocity(m, mjx.fwd_position(m, d)))(d).qfrc_bias, rtol=1e-6
             )
         assert not np.allclose(out[0], out[1])  # the masses reached the stage
+
+
+def test_a_shielded_brax_envs_reset_runs_mjxs_forward_once_per_model_and_equals_braxs_own(monkeypatch):
+    """``JointLimitShield`` gives its Brax env ``mjx_stages.brax_pipeline_init``: Brax's ``pipeline_init`` with
+    ``mjx.forward`` traced once per model. Two programs resetting the env (one of them vmapped) run MJX's forward
+    once; each reset state equals Brax's own (``brax.mjx.pipeline.init``, MJX's forward) bit for bit; Brax's
+    module is left as it was."""
+    import brax.envs
+    from brax.mjx import pipeline
+
+    from jaxlimits.envs import JointLimitShield
+
+    calls = []
+
+    def forward(m, d):
+        calls.append(1)
+        return mjx.forward(m, d)
+
+    monkeypatch.setattr(mjx_stages._MjxWithStagedForward, "forward", staticmethod(mjx_stages.traced_once(forward)))
+    with jax.numpy_rank_promotion("allow"):
+        env = JointLimitShield(brax.envs.get_environment("reacher", backend="mjx"), v_max=2.0)
+        base = env.unwrapped
+        assert base.pipeline_init == env._staged_pipeline_init
+        key = jax.random.PRNGKey(3)
+        state = jax.jit(env.reset)(key)
+        states = jax.jit(jax.vmap(env.reset))(jax.random.split(key, 2))
+        assert len(calls) == 1, "MJX's forward ran again for the same model and shapes"
+        assert pipeline.mjx is mjx
+        # Brax's own reset (its pipeline_init, MJX's forward traced in place) on the same keys
+        monkeypatch.setattr(base, "pipeline_init", type(base).pipeline_init.__get__(base))
+        ref = jax.jit(env.reset)(key)
+        refs = jax.jit(jax.vmap(env.reset))(jax.random.split(key, 2))
+    assert len(calls) == 1
+    for got, want in ((state, ref), (states, refs)):
+        for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(a, b, err_msg=jax.tree_util.keystr(path))
+    assert np.any(np.asarray(state.pipeline_state.qfrc_bias) != 0.0)  # forward's results reached the state
