@@ -203,6 +203,44 @@ def test_scripted_evaluation_counts_and_shield(planar):
         evaluate.scripted_policy("sideways", 3)
 
 
+def test_the_evaluator_batches_its_episodes_step_once(planar):
+    """Under ``vmap`` a ``lax.scan`` carry that enters unbatched and leaves batched makes JAX batch the scan's body
+    again; the evaluator's carries (state, sums, held action) all enter batched, so the env step, with its shield,
+    is batched once per trace. Counted with a ``custom_vmap`` identity in the step, whose rule runs once per
+    batching of the body (the evaluator before this fix: twice). Traced, not compiled."""
+    from jaxlimits.envs import SafetyWrapper
+
+    batchings = []
+
+    @jax.custom_batching.custom_vmap
+    def mark(a):
+        return a
+
+    @mark.def_vmap
+    def _(axis_size, in_batched, a):
+        batchings.append(axis_size)
+        return a, in_batched[0]
+
+    class MarkedStep:
+        def __init__(self, env):
+            self.env, self.action_size = env, env.action_size
+
+        def reset(self, key):
+            return self.env.reset(key)
+
+        def step(self, state, action):
+            return self.env.step(state, mark(action))
+
+    env = MarkedStep(SafetyWrapper(planar, method="viability"))
+    for repeat in (1, 2):
+        batchings.clear()
+        ev = evaluate.Evaluator(
+            env, evaluate.scripted_policy("random", env.action_size), episodes=3, episode_length=4, action_repeat=repeat
+        )
+        jax.make_jaxpr(ev._run)(None, jax.random.key_data(jax.random.split(jax.random.PRNGKey(0), 3)))
+        assert batchings == [3], (repeat, batchings)
+
+
 SHARDING_SCRIPT = textwrap.dedent("""
     import json, jax, numpy as np
     from jaxlimits.envs import make_planar_reach, SafetyWrapper

@@ -122,7 +122,7 @@ def play_from(env, policy, params, keys, steps: int, action_repeat: int, observe
 
 
 def _observe_summaries(prev, state):
-    """The evaluator's ``observe``: per-episode sums and maxima of the step's metrics (``_episode``)."""
+    """The evaluator's ``observe``: per-episode sums and maxima of the step's metrics (``_episodes``)."""
     m = state.metrics
     acc = {
         "return": prev["return"] + state.reward,
