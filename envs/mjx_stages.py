@@ -17,7 +17,7 @@ close over, and the stage is MJX's own, traced as before.
 
 ``brax_pipeline_init`` is a Brax ``PipelineEnv``'s reset physics (``pipeline_init``) with its ``mjx.forward`` traced
 once per model the same way (``JointLimitShield`` installs it): the servo Panda's reset and two evaluators of its
-env traced in 13.9 s instead of 20.0 s (one process, one core each, side by side).
+env traced in 44.2 / 36.5 s instead of 58.5 / 62.8 s (alternating runs on one core beside a busy one).
 """
 
 from __future__ import annotations

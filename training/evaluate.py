@@ -159,8 +159,8 @@ def _episodes(env, policy, params, keys, episode_length: int, action_repeat: int
 
     Each key is ``play_episode``'s. The resets run batched first, and every carry of the episodes' ``lax.scan``
     enters it batched: under ``vmap`` a carry entering unbatched and leaving batched makes JAX batch the whole
-    scan body (the env step) a second time (measured: the contact arm's campaign evaluator traced in ~25 s, half
-    of it the second pass)."""
+    scan body (the env step) a second time (measured: the contact arm's campaign evaluator traced from scratch in
+    18.0 s before, 14.4 s now)."""
     split = jax.vmap(lambda k: jax.random.split(jax.random.wrap_key_data(k), 3))(keys)
     states0 = jax.vmap(env.reset)(split[:, 0])
     batch = keys.shape[0]
