@@ -5,13 +5,12 @@ Markdown table and one JSON line, writes ``campaign.json`` / ``campaign.md``. Se
     .venv/bin/python benchmarks/safety_campaign.py [--steps 1e7] [--targets "planar arm,planar wall"]
         [--trained results/main/runs/viability] [--out results/campaign]
 
-Same as ``jaxlimits campaign``.
+Same as ``jaxlimits campaign`` (the CLI's entry, with its garbage-collector thresholds for tracing).
 """
 
 import sys
 
-import jaxlimits.envs  # noqa: F401  (XLA flags before jax)
-from jaxlimits.training.campaign import main
+from jaxlimits.training.cli import main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(["campaign", *sys.argv[1:]]))

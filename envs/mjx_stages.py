@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import types
 
 import jax
 import jax.extend
@@ -120,17 +121,23 @@ class _MjxWithStagedForward:
         return getattr(mjx, name)
 
 
+def _with_staged_mjx(fn):
+    """``fn`` (a function of a module that imports ``mujoco.mjx`` as ``mjx``) whose global ``mjx`` is
+    ``_MjxWithStagedForward``: the same code object over a copy of its module's globals, so the module itself is
+    never modified (thread-safe; a concurrent call of the module's own function keeps MJX's ``forward``)."""
+    scope = dict(fn.__globals__, mjx=_MjxWithStagedForward())
+    staged = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
+    staged.__kwdefaults__ = fn.__kwdefaults__
+    return functools.wraps(fn)(staged)
+
+
 def brax_pipeline_init(sys, q, qd, act=None, ctrl=None, debug: bool = False):
     """``brax.mjx.pipeline.init(sys, q, qd, act, ctrl, debug)`` (the reset physics of a Brax ``PipelineEnv`` on the
     mjx backend: ``make_data``, ``mjx.forward``, Brax's state layout) with its ``mjx.forward`` traced once per model.
 
-    Brax's own function runs, with the module's ``mjx`` name bound to ``_MjxWithStagedForward`` for the call (Brax
-    0.14.2 reads ``mjx.forward`` from its module's globals when ``init`` runs), so Brax's layout code is not copied."""
+    Brax's own function runs (its code object, so Brax's layout code is not copied), with its global ``mjx`` bound
+    to ``_MjxWithStagedForward`` in a copy of its module's globals (Brax 0.14.2 reads ``mjx.forward`` from them
+    when ``init`` runs); ``brax.mjx.pipeline`` itself is left as it is."""
     from brax.mjx import pipeline
 
-    real = pipeline.mjx
-    pipeline.mjx = _MjxWithStagedForward()
-    try:
-        return pipeline.init(sys, q, qd, act, ctrl, debug)
-    finally:
-        pipeline.mjx = real
+    return _with_staged_mjx(pipeline.init)(sys, q, qd, act, ctrl, debug)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import pathlib
 import sys
 
 import jax
@@ -185,3 +186,24 @@ def test_bad_arguments_are_refused():
         campaign.main(["--steps", "nan"])
     with pytest.raises(SystemExit, match="the targets' shields"):
         campaign.main(["--targets", "UR5e", "--shields", "jerk"])
+
+
+@pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+def test_the_benchmark_script_runs_the_clis_campaign_with_its_gc_thresholds(monkeypatch):
+    """``benchmarks/safety_campaign.py`` is ``jaxlimits campaign``: the same parser, and the CLI's garbage-collector
+    thresholds for tracing (``jaxlimits/_gc.py``), which ``campaign.main`` alone does not set."""
+    import gc
+    import runpy
+
+    from jaxlimits._gc import TRACING_THRESHOLDS
+
+    old = gc.get_threshold()
+    try:
+        gc.set_threshold(700, 10, 10)  # CPython's defaults, as in a fresh process
+        monkeypatch.setattr(sys, "argv", ["safety_campaign.py", "--steps", "nan"])
+        script = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "safety_campaign.py"
+        with pytest.raises(SystemExit, match="--steps"):
+            runpy.run_path(str(script), run_name="__main__")
+        assert gc.get_threshold() == TRACING_THRESHOLDS
+    finally:
+        gc.set_threshold(*old)

@@ -127,17 +127,17 @@ def test_a_traced_model_runs_mjxs_stage_itself():
 def test_a_shielded_brax_envs_reset_runs_mjxs_forward_once_per_model_and_equals_braxs_own(monkeypatch):
     """``JointLimitShield`` gives its Brax env ``mjx_stages.brax_pipeline_init``: Brax's ``pipeline_init`` with
     ``mjx.forward`` traced once per model. Two programs resetting the env (one of them vmapped) run MJX's forward
-    once; each reset state equals Brax's own (``brax.mjx.pipeline.init``, MJX's forward) bit for bit; Brax's
-    module is left as it was."""
+    once; each reset state equals Brax's own (``brax.mjx.pipeline.init``, MJX's forward) to float32 roundoff; Brax's
+    module is never modified, not even during the call (another thread may be running Brax's own ``init``)."""
+    from jaxlimits.envs import JointLimitShield  # first: it imports Brax with jaxopt's deprecation warning silenced
+
     import brax.envs
     from brax.mjx import pipeline
-
-    from jaxlimits.envs import JointLimitShield
 
     calls = []
 
     def forward(m, d):
-        calls.append(1)
+        calls.append(pipeline.mjx is mjx)
         return mjx.forward(m, d)
 
     monkeypatch.setattr(mjx_stages._MjxWithStagedForward, "forward", staticmethod(mjx_stages.traced_once(forward)))
@@ -149,6 +149,7 @@ def test_a_shielded_brax_envs_reset_runs_mjxs_forward_once_per_model_and_equals_
         state = jax.jit(env.reset)(key)
         states = jax.jit(jax.vmap(env.reset))(jax.random.split(key, 2))
         assert len(calls) == 1, "MJX's forward ran again for the same model and shapes"
+        assert calls == [True], "brax.mjx.pipeline's global mjx was rebound during the call"
         assert pipeline.mjx is mjx
         # Brax's own reset (its pipeline_init, MJX's forward traced in place) on the same keys
         monkeypatch.setattr(base, "pipeline_init", type(base).pipeline_init.__get__(base))
@@ -157,5 +158,7 @@ def test_a_shielded_brax_envs_reset_runs_mjxs_forward_once_per_model_and_equals_
     assert len(calls) == 1
     for got, want in ((state, ref), (states, refs)):
         for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(got), jax.tree_util.tree_leaves(want)):
-            np.testing.assert_array_equal(a, b, err_msg=jax.tree_util.keystr(path))
+            # to float32 roundoff: XLA may fuse the two programs differently (bit for bit when the suite runs
+            # the file after others; alone, 4 of 36 ximat entries differed by <= 6e-8)
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
     assert np.any(np.asarray(state.pipeline_state.qfrc_bias) != 0.0)  # forward's results reached the state

@@ -22,8 +22,12 @@ def _check(r):
         assert v["position"] == 0 and v["velocity"] == 0, (phase, v)
 
 
-def test_sb3_reacher_viability_trains_and_never_violates():
+def test_sb3_reacher_viability_trains_and_never_violates(tmp_path, monkeypatch):
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # SB3's default logger folder would land here
     r = third_party.sb3_reacher("viability", 2048, eval_episodes=10)
+    assert not list(tmp_path.glob("SB3-*"))
     _check(r)
     # SB3 trains one whole rollout: 2048 steps in each of the 4 envs; Reacher-v5's episodes are 50 steps
     assert r["train_violations"]["steps"] == 2048 * 4

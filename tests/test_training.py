@@ -352,9 +352,14 @@ def test_evaluate_cli_reproduces_the_main_jobs_evaluation(main_job, tmp_path):
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
-def test_sb3_runs_on_the_gymnasium_env(tmp_path, algo):
+def test_sb3_runs_on_the_gymnasium_env(tmp_path, algo, monkeypatch):
+    import tempfile
+
     from jaxlimits.training import sb3
 
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # SB3's default logger folder would land here
     model, metrics = sb3.train(
         "viability",
         total_timesteps=256,
@@ -366,6 +371,7 @@ def test_sb3_runs_on_the_gymnasium_env(tmp_path, algo):
         max_episode_steps=50,
     )
     assert metrics["env_steps"] >= 256 and metrics["algo"] == algo
+    assert not list(scratch.glob("SB3-*"))  # no empty SB3-<timestamp> folder left in the temporary directory
     assert metrics["violations/position"] == 0 and metrics["violations/velocity"] == 0
     before = {k: v.clone() for k, v in model.policy.state_dict().items()}
     for p in model.policy.parameters():

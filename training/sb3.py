@@ -51,6 +51,14 @@ class _ViolationCounter:
 ALGOS = ("ppo", "sac")
 
 
+def silent_logger():
+    """An SB3 ``Logger`` with no outputs. Without one, every ``learn`` with ``verbose=0`` and no ``tensorboard_log``
+    creates an empty ``SB3-<timestamp>`` folder in the system's temporary directory (``logger.configure``)."""
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])
+
+
 def train(
     shield: str = "viability",
     total_timesteps: int = 20_000,
@@ -92,6 +100,7 @@ def train(
         model = PPO("MlpPolicy", env, n_steps=n_steps, **common)
     else:
         model = SAC("MlpPolicy", env, learning_starts=learning_starts, **common)
+    model.set_logger(silent_logger())
     model.learn(total_timesteps=total_timesteps, callback=Callback())
     metrics = {
         "algo": algo,

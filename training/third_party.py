@@ -89,6 +89,8 @@ def sb3_reacher(shield: str, timesteps: int, seed: int = 0, *, n_envs: int = 4, 
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
+    from jaxlimits.training.sb3 import silent_logger
+
     from jaxlimits.envs.gym import JointLimitShieldWrapper
 
     _check_shield(shield)
@@ -106,6 +108,7 @@ def sb3_reacher(shield: str, timesteps: int, seed: int = 0, *, n_envs: int = 4, 
 
     train_env, train_shields = vec_env(n_envs, seed)
     model = PPO("MlpPolicy", train_env, seed=seed, device="cpu", verbose=0)
+    model.set_logger(silent_logger())
     t0 = time.perf_counter()
     model.learn(total_timesteps=timesteps)
     wall = time.perf_counter() - t0
