@@ -27,6 +27,10 @@ Every step's ``info`` carries ``info["violation"]``: ``{"position", "velocity", 
 ``info["intervention"]`` (``max |a_safe - a_des|``) and ``info["accel_error"]``. A violation in the
 last step of a vector env's episode is in ``info["final_info"]["violation"]``.
 
+Worker processes: JAX cannot run in a process forked after JAX started, so these envs refuse to be built there
+with an error naming the start methods that work (``fork_guard``): Gymnasium's ``AsyncVectorEnv`` needs
+``context="forkserver"`` (or ``"spawn"``); Stable-Baselines3's ``SubprocVecEnv`` works as it is.
+
 ``render_mode="rgb_array"`` renders with MuJoCo's ``Renderer``; headless it needs
 ``MUJOCO_GL=egl`` (set by default by ``jaxlimits.envs`` when unset) and libEGL; ``osmesa`` needs
 the system package ``libosmesa6``.
@@ -46,6 +50,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 
 from jaxlimits.envs.actions import with_action_mode
 from jaxlimits.envs.arm import VIOLATION_KEYS, make_panda_reach, make_planar_reach
+from jaxlimits.envs.fork_guard import check_not_forked_from_jax
 from jaxlimits.envs.safety import SafetyWrapper
 
 ARMS = {"planar": make_planar_reach, "panda": make_panda_reach}
@@ -100,6 +105,7 @@ class _Core:
         ik_observation: bool = False,
         precision_reward: float = 0.0,
     ):
+        check_not_forked_from_jax(type(self).__name__)  # before any JAX call (fork_guard)
         if arm not in ARMS:
             raise ValueError(f"arm must be one of {tuple(ARMS)}, got {arm!r}")
         if render_mode not in (None, "rgb_array"):

@@ -50,6 +50,10 @@ implicitfast realise ``a_safe`` exactly (to float64 roundoff) without constraint
 saturation; RK4 holds ``ctrl`` over its four stages, so it realises the held acceleration only to
 second order in ``h`` (``robot.py``; ``SafeAcceleration`` tightens the limits for it by ``RK4_MARGIN``).
 
+Worker processes (vectorised envs): JAX cannot run in a process forked after JAX started, so the wrapper refuses to
+be built there with an error naming the start methods that work (``fork_guard``): Gymnasium's ``AsyncVectorEnv``
+needs ``context="forkserver"`` (or ``"spawn"``); Stable-Baselines3's ``SubprocVecEnv`` works as it is.
+
 Cost: the decision is one XLA call per control step (float32 numpy in, one packed array out); the
 substeps run NumPy and C MuJoCo from Python, several times the env's own ``mj_step``
 (``benchmarks/bench_gym_shield.py``).
@@ -67,6 +71,7 @@ import mujoco
 import numpy as np
 
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
+from jaxlimits.envs.fork_guard import check_not_forked_from_jax
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, RK4_MARGIN, RK4_RESTEP, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
@@ -144,6 +149,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         correct_contacts: bool = True,
         **robot_kwargs,
     ):
+        check_not_forked_from_jax("JointLimitShieldWrapper")  # before any JAX call (fork_guard)
         super().__init__(env)
         base = env.unwrapped
         self.torque_limits = bool(torque_limits) and method != "none"
