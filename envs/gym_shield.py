@@ -64,6 +64,8 @@ NaN guard): it counts the violations the shield prevents.
 
 from __future__ import annotations
 
+import collections
+
 import gymnasium
 import jax
 import jax.numpy as jnp
@@ -102,6 +104,35 @@ def _zero_tally() -> dict:
         "max_beyond_bounds": 0.0,
         "max_contact_corrected": 0.0,
     }
+
+
+_SHARED_DECIDERS = collections.OrderedDict()  # (robot fingerprint, method, torque limits, n_frames) -> decider
+_SHARED_DECIDERS_MAX = 32
+
+
+def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bool):
+    """``(SafeAcceleration, compiled)``: the decision for ``robot`` over ``n_frames`` substeps, jitted and compiled
+    ahead of time for float32 ``(n,)`` inputs (``JointLimitShieldWrapper._decider``)."""
+    decide = SafeAcceleration(robot, n_frames, method)
+
+    def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi):
+        torque = TorqueModel(M_ss, f_s, tau_lo, tau_hi) if torque_limits else None
+        dec = decide(q, v, a_des, a_prev, torque)
+        f32 = jnp.float32
+        return jnp.concatenate(
+            [
+                dec.a_safe.astype(f32),
+                dec.lower.astype(f32),
+                dec.upper.astype(f32),
+                dec.viable.astype(f32),
+                dec.nonfinite.astype(f32)[None],
+                dec.conflict.astype(f32)[None],
+            ]
+        )
+
+    spec = jax.ShapeDtypeStruct((robot.n,), jnp.float32)
+    mspec = jax.ShapeDtypeStruct((robot.n, robot.n), jnp.float32)
+    return decide, jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec).compile()
 
 
 class JointLimitShieldWrapper(gymnasium.Wrapper):
@@ -168,7 +199,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         self.actuation = CActuation(rob, base.model)
         self.method = method
         self._base = base
-        self._deciders = {}  # n_frames -> (SafeAcceleration, compiled XLA executable)
+        self._robot_key = rob.fingerprint()
+        self._deciders = {}  # n_frames -> (SafeAcceleration, compiled XLA executable); shared: _SHARED_DECIDERS
         self.decide = self._decider(int(base.frame_skip))[0]  # validates and compiles eagerly
         n = rob.n
         self._n = n
@@ -199,35 +231,27 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
 
     # ---- the decision ------------------------------------------------------------------------------
     def _decider(self, n_frames: int):
-        """``(SafeAcceleration, compiled)`` for ``n_frames`` substeps (cached). ``compiled(q, v, a_des,
-        a_prev, M_ss, f_s, tau_lo, tau_hi)`` takes float32 arrays (the state, the command, the previous
-        acceleration and the ``TorqueModel``) and returns one packed ``(4 n + 2,)`` float32 array
-        ``[a_safe, lower, upper, viable, nonfinite, torque_conflict]`` (one device-to-host transfer)."""
+        """``(SafeAcceleration, compiled)`` for ``n_frames`` substeps. ``compiled(q, v, a_des, a_prev, M_ss, f_s,
+        tau_lo, tau_hi)`` takes float32 arrays (the state, the command, the previous acceleration and the
+        ``TorqueModel``) and returns one packed ``(4 n + 2,)`` float32 array ``[a_safe, lower, upper, viable,
+        nonfinite, torque_conflict]`` (one device-to-host transfer).
+
+        Cached per wrapper and shared between wrappers whose robots are alike (``Robot.fingerprint``) with the
+        same method, torque limits and ``n_frames``: a vector env of ``N`` copies of one env traces and compiles
+        the decision once, not ``N`` times (~10 s each here)."""
         hit = self._deciders.get(n_frames)
-        if hit is not None:
-            return hit
-        decide = SafeAcceleration(self.robot, n_frames, self.method)
-
-        def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi):
-            torque = TorqueModel(M_ss, f_s, tau_lo, tau_hi) if self.torque_limits else None
-            dec = decide(q, v, a_des, a_prev, torque)
-            f32 = jnp.float32
-            return jnp.concatenate(
-                [
-                    dec.a_safe.astype(f32),
-                    dec.lower.astype(f32),
-                    dec.upper.astype(f32),
-                    dec.viable.astype(f32),
-                    dec.nonfinite.astype(f32)[None],
-                    dec.conflict.astype(f32)[None],
-                ]
-            )
-
-        spec = jax.ShapeDtypeStruct((self.robot.n,), jnp.float32)
-        mspec = jax.ShapeDtypeStruct((self.robot.n, self.robot.n), jnp.float32)
-        compiled = jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec).compile()
-        self._deciders[n_frames] = (decide, compiled)
-        return decide, compiled
+        if hit is None:
+            key = (self._robot_key, self.method, self.torque_limits, int(n_frames))
+            hit = _SHARED_DECIDERS.get(key)
+            if hit is None:
+                hit = _compile_decider(self.robot, int(n_frames), self.method, self.torque_limits)
+                _SHARED_DECIDERS[key] = hit
+                if len(_SHARED_DECIDERS) > _SHARED_DECIDERS_MAX:
+                    _SHARED_DECIDERS.popitem(last=False)
+            else:
+                _SHARED_DECIDERS.move_to_end(key)
+            self._deciders[n_frames] = hit
+        return hit
 
     # ---- the physics call --------------------------------------------------------------------------
     def _do_simulation(self, ctrl, n_frames) -> None:

@@ -217,6 +217,22 @@ class Robot:
     def n(self) -> int:
         return len(self.names)
 
+    def fingerprint(self) -> tuple:
+        """A hashable digest of every field (arrays by dtype, shape and bytes; the limits field by field): equal
+        for robots read alike from equal models (``from_model`` is deterministic), so whatever is computed from
+        one robot alone serves the other (the Gymnasium wrapper shares its compiled decision this way)."""
+
+        def digest(x):
+            if x is None or isinstance(x, (str, bool, int, float, tuple)):
+                return x
+            if isinstance(x, jl.JointLimits):
+                leaves, has_jerk = x.tree_flatten()
+                return has_jerk, tuple(digest(leaf) for leaf in leaves)
+            a = np.ascontiguousarray(x)
+            return (a.dtype.str, a.shape, a.tobytes())
+
+        return tuple((f.name, digest(getattr(self, f.name))) for f in dataclasses.fields(self))
+
     @property
     def other_dofs(self) -> np.ndarray:
         """The model's dofs that are not shielded, ``(nv - n,)``."""

@@ -368,6 +368,34 @@ def test_takes_over_do_simulation_only_and_compiles_once():
         JointLimitShieldWrapper(env, v_max=2.0)
 
 
+def test_alike_wrappers_share_one_compiled_decision_and_others_do_not():
+    """A vector env of N copies of one env compiles the decision once (``Robot.fingerprint``); a robot that differs
+    in anything (limits, actuators) gets its own, and its own bounds."""
+    from jaxlimits.envs.robot import Robot
+
+    a, b = _make("Reacher-v5"), _make("Reacher-v5")
+    fs = a.unwrapped.frame_skip
+    assert a.robot.fingerprint() == b.robot.fingerprint()
+    assert a._decider(fs)[1] is b._decider(fs)[1]
+    slow = JointLimitShieldWrapper(gymnasium.make("Reacher-v5"), v_max=1.0)
+    assert slow.robot.fingerprint() != a.robot.fingerprint()
+    assert slow._decider(fs)[1] is not a._decider(fs)[1]
+    model = gymnasium.make("Reacher-v5").unwrapped.model
+    same = Robot.from_model(model, v_max=V_MAX["Reacher-v5"])
+    model.actuator_gear[0, 0] *= 2.0
+    assert Robot.from_model(model, v_max=V_MAX["Reacher-v5"]).fingerprint() != same.fingerprint()
+    # each keeps its own limit: all actions at their upper bounds, from rest
+    top = {}
+    for name, env in (("a", a), ("slow", slow)):
+        env.reset(seed=0)
+        speeds = []
+        for _ in range(40):
+            env.step(env.action_space.high)
+            speeds.append(np.max(np.abs(env.unwrapped.data.qvel[env.robot.dof_adr])))
+        top[name] = max(speeds)
+    assert top["slow"] <= 1.0 < top["a"], top
+
+
 def test_jerk_method_uses_the_previous_acceleration():
     env = _make("Reacher-v5", method="jerk", j_max=1e5)
     T = env.robot.timestep * env.unwrapped.frame_skip
