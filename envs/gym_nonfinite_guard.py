@@ -19,11 +19,13 @@ import numpy as np
 from jaxlimits.envs.gym_shield import MJ_MAXVAL
 
 
-class NonFiniteActionGuardWrapper(gymnasium.Wrapper):
-    """Replace a non-finite action by zeros before the wrapped env's ``step``; see the module docstring."""
+class NonFiniteActionGuardWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+    """Replace a non-finite action by zeros before the wrapped env's ``step``; see the module docstring.
+    Recorded in ``env.spec`` (``gymnasium.make(env.spec)`` rebuilds the stack)."""
 
     def __init__(self, env: gymnasium.Env):
-        super().__init__(env)
+        gymnasium.utils.RecordConstructorArgs.__init__(self)
+        gymnasium.Wrapper.__init__(self, env)
         self.replaced = 0
 
     def step(self, action):

@@ -135,8 +135,9 @@ def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bo
     return decide, jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec).compile()
 
 
-class JointLimitShieldWrapper(gymnasium.Wrapper):
-    """Shield the joints of a Gymnasium ``MujocoEnv``; see the module docstring.
+class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
+    """Shield the joints of a Gymnasium ``MujocoEnv``; see the module docstring. Its arguments are recorded in
+    ``env.spec`` (``gymnasium.make(env.spec)`` rebuilds the shielded env; Gymnasium's ``check_env`` needs it).
 
     Args:
       env: a Gymnasium env (possibly wrapped, e.g. by ``gymnasium.make``) whose ``unwrapped`` has
@@ -181,7 +182,18 @@ class JointLimitShieldWrapper(gymnasium.Wrapper):
         **robot_kwargs,
     ):
         check_not_forked_from_jax("JointLimitShieldWrapper")  # before any JAX call (fork_guard)
-        super().__init__(env)
+        gymnasium.utils.RecordConstructorArgs.__init__(
+            self,
+            joints=joints,
+            v_max=v_max,
+            a_max=a_max,
+            j_max=j_max,
+            method=method,
+            torque_limits=torque_limits,
+            correct_contacts=correct_contacts,
+            **robot_kwargs,
+        )
+        gymnasium.Wrapper.__init__(self, env)
         base = env.unwrapped
         self.torque_limits = bool(torque_limits) and method != "none"
         self.correct_contacts = bool(correct_contacts) and method != "none"

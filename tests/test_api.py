@@ -69,6 +69,22 @@ def test_joint_limits_is_immutable_and_replace_validates():
         lim.replace(a_max=0.0)
 
 
+@pytest.mark.parametrize("j_max", [None, [30.0, 40.0]])
+def test_joint_limits_pickle_copy_and_deepcopy(j_max):
+    """Vector envs' worker processes pickle what their env needs; copies rebuild through the constructor."""
+    import copy
+    import pickle
+
+    lim = jl.JointLimits([-1.0, -2.0], [1.0, 2.0], [2.0, 1.0], [3.0, 4.0], j_max)
+    for other in (pickle.loads(pickle.dumps(lim)), copy.copy(lim), copy.deepcopy(lim)):
+        assert type(other) is jl.JointLimits and other is not lim
+        for name in ("q_min", "q_max", "v_max", "a_max", "j_max"):
+            a, b = getattr(lim, name), getattr(other, name)
+            assert (a is None and b is None) or (np.array_equal(a, b) and np.asarray(b).dtype == np.float64), name
+        with pytest.raises(AttributeError):
+            other.a_max = 5.0
+
+
 LIM = jl.JointLimits([-2.0, -1.0], [2.0, 1.0], [2.0, 1.5], [12.0, 10.0])
 
 

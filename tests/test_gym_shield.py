@@ -396,6 +396,29 @@ def test_alike_wrappers_share_one_compiled_decision_and_others_do_not():
     assert top["slow"] <= 1.0 < top["a"], top
 
 
+# Gymnasium's checker's own advice (a wrapped env: the point here; Reacher's unbounded observation box)
+@pytest.mark.filterwarnings("ignore:.*WARN:UserWarning")
+def test_gymnasiums_check_env_passes_and_the_spec_rebuilds_the_shielded_stack():
+    """Both wrappers record their arguments in ``env.spec`` (``RecordConstructorArgs``): Gymnasium's ``check_env``
+    accepts the stack (it refused it before: "the wrapper cannot be recreated") and ``gymnasium.make(env.spec)``
+    rebuilds it with the same shield."""
+    from gymnasium.utils.env_checker import check_env
+
+    from jaxlimits.envs.gym import NonFiniteActionGuardWrapper
+
+    env = NonFiniteActionGuardWrapper(
+        JointLimitShieldWrapper(gymnasium.make("Reacher-v5"), v_max=V_MAX["Reacher-v5"], method="naive")
+    )
+    check_env(env, skip_render_check=True)
+    names = [w.name for w in env.spec.additional_wrappers]
+    assert names[-2:] == ["JointLimitShieldWrapper", "NonFiniteActionGuardWrapper"], names
+    again = gymnasium.make(env.spec)
+    assert isinstance(again, NonFiniteActionGuardWrapper)
+    shield = again.env
+    assert isinstance(shield, JointLimitShieldWrapper) and shield.method == "naive"
+    assert shield.robot.fingerprint() == env.env.robot.fingerprint()
+
+
 def test_jerk_method_uses_the_previous_acceleration():
     env = _make("Reacher-v5", method="jerk", j_max=1e5)
     T = env.robot.timestep * env.unwrapped.frame_skip

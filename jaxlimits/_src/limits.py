@@ -74,6 +74,11 @@ class JointLimits:
     def __setattr__(self, name, value):
         raise AttributeError("JointLimits is immutable; use .replace(...)")
 
+    def __reduce__(self):
+        # pickle, copy and deepcopy rebuild through the constructor (validated again); without this they set the
+        # slots one by one and hit __setattr__ (worker processes of vector envs pickle what their env needs)
+        return JointLimits, tuple(getattr(self, name) for name in _FIELDS)
+
     def replace(self, **changes) -> "JointLimits":
         """A copy with some fields changed (validated again)."""
         fields = {name: getattr(self, name) for name in _FIELDS}
