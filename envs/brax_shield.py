@@ -222,6 +222,12 @@ class JointLimitShield(Wrapper):
             )
         if "_shielded_by" in base.__dict__:
             raise ValueError("this env is already shielded (one JointLimitShield per env)")
+        if type(base).pipeline_step is not PipelineEnv.pipeline_step:
+            raise ValueError(
+                f"{type(base).__name__} overrides PipelineEnv.pipeline_step, the physics call the shield takes over: "
+                "its own code would not run under the shield. Move that code into the env's step (around "
+                "pipeline_step), or shield an env that keeps Brax's pipeline_step"
+            )
         self.n_frames = int(base._n_frames)
         robot_kwargs.setdefault("control_dt", float(base.sys.opt.timestep) * self.n_frames)
         self.robot = Robot.from_model(_mj_model_of(base.sys), joints, v_max, a_max, j_max, **robot_kwargs)

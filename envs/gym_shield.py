@@ -71,6 +71,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
 from jaxlimits.envs.fork_guard import check_not_forked_from_jax
@@ -206,6 +207,12 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             )
         if "_shielded_by" in vars(base):
             raise ValueError("this env is already shielded (one JointLimitShieldWrapper per env)")
+        if isinstance(base, MujocoEnv) and type(base).do_simulation is not MujocoEnv.do_simulation:
+            raise ValueError(
+                f"{type(base).__name__} overrides MujocoEnv.do_simulation, the physics call the shield takes over: "
+                "its own code would not run under the shield. Move that code into the env's step (around "
+                "do_simulation), or shield an env that keeps Gymnasium's do_simulation"
+            )
         robot_kwargs.setdefault("control_dt", float(base.model.opt.timestep) * int(base.frame_skip))
         self.robot = rob = Robot.from_model(base.model, joints, v_max, a_max, j_max, **robot_kwargs)
         self.actuation = CActuation(rob, base.model)

@@ -192,6 +192,15 @@ def test_bad_input_is_an_eager_error_naming_it():
         JointLimitShield(brax.envs.get_environment("reacher", backend="generalized"), v_max=1.0)
     with pytest.raises(ValueError, match="method must be one of"):
         _shield_pusher(_pusher(), method="clip")
+    # an env with its own physics call: shielding it would silently skip that code
+    reacher = brax.envs.get_environment("reacher", backend="mjx")
+
+    class Perturbed(type(reacher)):
+        def pipeline_step(self, pipeline_state, action):
+            return super().pipeline_step(pipeline_state, action * 0.5)
+
+    with pytest.raises(ValueError, match="Perturbed overrides PipelineEnv.pipeline_step"):
+        JointLimitShield(Perturbed(backend="mjx"), v_max=1.0)
 
 
 def test_a_domain_randomisation_reaches_the_shielded_physics():

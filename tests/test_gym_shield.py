@@ -259,6 +259,18 @@ def test_not_a_mujoco_env():
         JointLimitShieldWrapper(gymnasium.make("CartPole-v1"), v_max=1.0)
 
 
+def test_an_env_with_its_own_physics_call_is_refused():
+    """Shielding takes over ``do_simulation``; an env that overrides it would silently lose its own code."""
+    from gymnasium.envs.mujoco.reacher_v5 import ReacherEnv
+
+    class Perturbed(ReacherEnv):
+        def do_simulation(self, ctrl, n_frames):
+            super().do_simulation(0.5 * ctrl, n_frames)
+
+    with pytest.raises(ValueError, match="Perturbed overrides MujocoEnv.do_simulation"):
+        JointLimitShieldWrapper(Perturbed(), v_max=4.0)
+
+
 _TINY = """
 <mujoco>
   <worldbody>
