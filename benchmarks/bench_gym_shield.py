@@ -102,7 +102,13 @@ def main():
     p.add_argument("--warmup", type=int, default=400)
     args = p.parse_args()
 
-    envs = {"pusher": _make(False), "shielded": _make(True)}
+    build, built = {}, {}
+    for name, shielded in (("plain", False), ("first", True), ("alike", True)):
+        t0 = time.perf_counter()
+        built[name] = _make(shielded)
+        build[name] = time.perf_counter() - t0
+    built.pop("alike").close()  # timed only: an alike wrapper shares the first one's compiled decision
+    envs = {"pusher": built["plain"], "shielded": built["first"]}
     rng = np.random.default_rng(0)
     space = envs["pusher"].action_space
     actions = rng.uniform(space.low, space.high, size=(args.steps, space.shape[0]))
@@ -135,11 +141,18 @@ def main():
     for name, us in rows:
         print(f"  {name:42s} {us:8.1f}")
     print(
+        f"\nbuild [s]: unwrapped env {build['plain']:.2f}, first shielded {build['first']:.2f} (traces and compiles "
+        f"the decision), an alike one {build['alike']:.2f} (shares it: {build['first'] / build['alike']:.0f}x less)"
+    )
+    print(
         json.dumps(
             {
                 "pusher_us": round(med["pusher"], 2),
                 "shielded_us": round(med["shielded"], 2),
                 "overhead": round(overhead, 4),
+                "build_plain_s": round(build["plain"], 3),
+                "build_first_s": round(build["first"], 3),
+                "build_alike_s": round(build["alike"], 3),
             }
         )
     )
