@@ -30,7 +30,9 @@ so the realised acceleration is constant only to first order; measured in the te
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
 import warnings
 
 import mujoco
@@ -252,8 +254,46 @@ class Robot:
         seed: int = 0,
         control_dt: float | None = None,
     ) -> "Robot":
-        """Read the robot from ``mj_model``; see the module docstring. Raises ``ValueError`` naming the
-        joint, actuator or field when something is missing or unsupported.
+        """Read the robot from ``mj_model``; see the module docstring and ``_read`` (the arguments). Raises
+        ``ValueError`` naming the joint, actuator or field when something is missing or unsupported.
+
+        Cached on the model's content (its MJB bytes, so a model changed in place is read again) and the
+        arguments: ``N`` copies of one env (a vector env) sample the braking capacity once, not ``N`` times
+        (~1 s each for Pusher-v5). A cached robot is the same object (its fields are not to be changed in
+        place); the warnings reading it gave are given again."""
+        args = (joints, v_max, a_max, j_max, torque_margin, torque_samples, torque_quantile, seed, control_dt)
+        key = _read_key(mj_model, args)
+        hit = None if key is None else _READ_CACHE.get(key)
+        if hit is None:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                robot = cls._read(mj_model, *args)
+            hit = (robot, tuple((w.message, w.category) for w in caught))
+            if key is not None:
+                _READ_CACHE[key] = hit
+                if len(_READ_CACHE) > _READ_CACHE_MAX:
+                    _READ_CACHE.popitem(last=False)
+        else:
+            _READ_CACHE.move_to_end(key)
+        for message, category in hit[1]:
+            warnings.warn(message, category, stacklevel=2)
+        return hit[0]
+
+    @classmethod
+    def _read(
+        cls,
+        mj_model: mujoco.MjModel,
+        joints=None,
+        v_max=None,
+        a_max=None,
+        j_max=None,
+        torque_margin: float = 0.8,
+        torque_samples: int = 4096,
+        torque_quantile: float | None = None,
+        seed: int = 0,
+        control_dt: float | None = None,
+    ) -> "Robot":
+        """``from_model`` without its cache.
 
         ``torque_margin`` (0, 1]: the torque-derived ``a_max`` is this fraction of the sampled braking
         capacity, lowered where needed to what condition (11) allows over ``control_dt``
@@ -378,6 +418,37 @@ class Robot:
         q_min = np.where(self.limited, lim.q_min, -R)
         q_max = np.where(self.limited, lim.q_max, R)
         return q * self.limited.astype(np.float32), lim.replace(q_min=q_min, q_max=q_max)
+
+
+_READ_CACHE = collections.OrderedDict()  # (model bytes' digest, arguments) -> (Robot, warnings), Robot.from_model
+_READ_CACHE_MAX = 32
+
+
+def _read_key(mj_model, args):
+    """``Robot.from_model``'s cache key: the SHA-1 of the model's MJB bytes and the arguments (names as tuples,
+    numbers and arrays by dtype, shape and bytes); ``None`` (not cached) for arguments of other kinds."""
+
+    def part(x):
+        if x is None or isinstance(x, (str, bool, int, float)):
+            return x
+        if isinstance(x, (list, tuple)) and all(isinstance(i, str) for i in x):
+            return ("names", tuple(x))
+        a = np.asarray(x)
+        if a.dtype.kind not in "biuf":
+            raise TypeError
+        a = np.ascontiguousarray(a, np.float64)
+        return (a.shape, a.tobytes())
+
+    try:
+        parts = tuple(part(x) for x in args)
+    except (TypeError, ValueError):
+        return None
+    try:
+        buf = np.empty(mujoco.mj_sizeModel(mj_model), np.uint8)
+        mujoco.mj_saveModel(mj_model, None, buf)
+    except Exception:  # noqa: BLE001  (a model MuJoCo cannot serialise is read every time)
+        return None
+    return hashlib.sha1(buf).hexdigest(), parts
 
 
 TORQUE_MARGIN = 0.9  # fraction of each actuator's torque range the shield plans with (M, h change in a step)

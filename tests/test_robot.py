@@ -99,3 +99,30 @@ def test_bad_limit_values_name_the_field():
         Robot.from_model(_model(), v_max=[1.0, -1.0, 1.0])
     with pytest.raises(ValueError, match="one value per shielded joint"):
         Robot.from_model(_model(), v_max=[1.0, 1.0])
+
+
+def test_from_model_is_cached_on_the_models_content_and_the_arguments():
+    """``N`` copies of one env read their robot once: the same model content and arguments give the same object,
+    a model changed in place or other arguments are read again, and the reading's warnings are given every time."""
+    import warnings
+
+    import gymnasium
+
+    pusher = gymnasium.make("Pusher-v5").unwrapped.model  # its torque-derived a_max warns (a quantile)
+    again = gymnasium.make("Pusher-v5").unwrapped.model
+    for model in (pusher, again):
+        with pytest.warns(UserWarning, match="quantile"):
+            robot = Robot.from_model(model, v_max=[2.0] * 7)
+        if model is pusher:
+            first = robot
+    assert robot is first  # a separate MjModel with the same content, v_max as a list
+    with pytest.warns(UserWarning, match="quantile"):
+        assert Robot.from_model(pusher, v_max=np.full(7, 2.0)) is first  # the same numbers as an array
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        slower = Robot.from_model(pusher, v_max=1.0)
+        assert slower is not first and np.all(slower.limits.v_max == 1.0)
+        pusher.actuator_gear[0, 0] *= 2.0  # changed in place: read again
+        stronger = Robot.from_model(pusher, v_max=[2.0] * 7)
+    assert stronger is not first and stronger.gear[0] == 2.0 * first.gear[0]
+    assert not np.array_equal(stronger.limits.a_max, first.limits.a_max)  # derived from the changed model
