@@ -281,19 +281,9 @@ class Robot:
 
     @classmethod
     def _read(
-        cls,
-        mj_model: mujoco.MjModel,
-        joints=None,
-        v_max=None,
-        a_max=None,
-        j_max=None,
-        torque_margin: float = 0.8,
-        torque_samples: int = 4096,
-        torque_quantile: float | None = None,
-        seed: int = 0,
-        control_dt: float | None = None,
+        cls, mj_model, joints, v_max, a_max, j_max, torque_margin, torque_samples, torque_quantile, seed, control_dt
     ) -> "Robot":
-        """``from_model`` without its cache.
+        """``from_model`` without its cache (every argument given: the defaults are ``from_model``'s).
 
         ``torque_margin`` (0, 1]: the torque-derived ``a_max`` is this fraction of the sampled braking
         capacity, lowered where needed to what condition (11) allows over ``control_dt``
