@@ -64,7 +64,6 @@ NaN guard): it counts the violations the shield prevents.
 
 from __future__ import annotations
 
-import collections
 
 import gymnasium
 import jax
@@ -73,6 +72,7 @@ import mujoco
 import numpy as np
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
+from jaxlimits.envs.content_cache import LruCache
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
 from jaxlimits.envs.fork_guard import check_not_forked_from_jax
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, RK4_MARGIN, RK4_RESTEP, SafeAcceleration
@@ -107,8 +107,7 @@ def _zero_tally() -> dict:
     }
 
 
-_SHARED_DECIDERS = collections.OrderedDict()  # (robot fingerprint, method, torque limits, n_frames) -> decider
-_SHARED_DECIDERS_MAX = 32
+_SHARED_DECIDERS = LruCache(32)  # (robot fingerprint, method, torque limits, n_frames) -> decider
 
 
 def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bool):
@@ -264,11 +263,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             hit = _SHARED_DECIDERS.get(key)
             if hit is None:
                 hit = _compile_decider(self.robot, int(n_frames), self.method, self.torque_limits)
-                _SHARED_DECIDERS[key] = hit
-                if len(_SHARED_DECIDERS) > _SHARED_DECIDERS_MAX:
-                    _SHARED_DECIDERS.popitem(last=False)
-            else:
-                _SHARED_DECIDERS.move_to_end(key)
+                _SHARED_DECIDERS.put(key, hit)
             self._deciders[n_frames] = hit
         return hit
 

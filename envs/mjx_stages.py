@@ -3,7 +3,8 @@
 Tracing an MJX stage runs MJX's Python over every body level (a Panda's kinematics: ~1 s), and an env step is
 traced again by every program that contains it (the training step, the evaluator, each test's rollout) and
 holds several stages (a substep's, the observation's). Called with a concrete ``sys`` (the usual case: an env's
-own model), each stage here runs MJX's Python once per model, argument shapes and trace context into a jaxpr
+own model), each stage here runs MJX's Python once per model (per content: an env built again from the same
+model, another test's or a vector env's copy, reuses it), argument shapes and trace context into a jaxpr
 (without the arguments' shardings, which ``jax.jit``'s own cache keys on: an evaluator's sharded episodes traced
 the Panda's position stage three more times), and calls a ``jax.jit`` of that jaxpr's evaluation. XLA inlines
 the call. The results equal MJX's own stages bit for bit in the programs ``tests/test_mjx_stages.py`` checks; in a
@@ -22,7 +23,6 @@ env traced in 44.2 / 36.5 s instead of 58.5 / 62.8 s (alternating runs on one co
 
 from __future__ import annotations
 
-import collections
 import functools
 import types
 
@@ -30,12 +30,28 @@ import jax
 import jax.extend
 from mujoco import mjx
 
+from jaxlimits.envs.content_cache import LruCache, content_digest
 from jaxlimits.internal import is_traced
 
-# (stage, id(sys)) -> (sys, {signature: (jitted stage, output treedef)}); ``sys`` is held so that its id cannot be
-# reused while its entry lives. Bounded: a process that builds many envs (a campaign) keeps the most recent models'.
-_TRACES: collections.OrderedDict = collections.OrderedDict()
-_MAX_MODELS = 64
+# (stage, the model's key) -> (sys, {signature: (jitted stage, output treedef)}); the key is the model's content
+# (``content_digest``: envs built again from one model, a test's or a vector env's copies, share the traces, the
+# jaxprs and so JAX's batching and lowering caches of them) or, for a model holding an object of unknown content,
+# its identity (then ``sys`` is held so that its id cannot be reused while the entry lives). Bounded: a process
+# that builds many envs (a campaign) keeps the most recent models'.
+_TRACES = LruCache(64)
+_MODEL_KEYS = LruCache(64)  # id(sys) -> (sys, key): each model object is digested once
+
+
+def _model_key(sys):
+    hit = _MODEL_KEYS.get(id(sys))
+    if hit is not None and hit[0] is sys:
+        return hit[1]
+    try:
+        key = ("content", content_digest(sys))
+    except TypeError:
+        key = ("id", id(sys))
+    _MODEL_KEYS.put(id(sys), (sys, key))
+    return key
 
 
 def _signature(leaves) -> tuple:
@@ -56,17 +72,15 @@ def _signature(leaves) -> tuple:
 
 
 def _traces(stage, sys) -> dict | None:
-    key = (stage, id(sys))
-    hit = _TRACES.get(key)
-    if hit is not None and hit[0] is sys:
-        _TRACES.move_to_end(key)
-        return hit[1]
     if any(is_traced(leaf) for leaf in jax.tree_util.tree_leaves(sys)):
         return None
-    _TRACES[key] = (sys, {})
-    if len(_TRACES) > _MAX_MODELS:
-        _TRACES.popitem(last=False)
-    return _TRACES[key][1]
+    model_key = _model_key(sys)
+    key = (stage, model_key)
+    hit = _TRACES.get(key)
+    if hit is not None and (model_key[0] == "content" or hit[0] is sys):
+        return hit[1]
+    _TRACES.put(key, (sys, {}))
+    return _TRACES.get(key)[1]
 
 
 def traced_once(stage):

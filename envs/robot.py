@@ -30,7 +30,6 @@ so the realised acceleration is constant only to first order; measured in the te
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import hashlib
 import warnings
@@ -39,6 +38,7 @@ import mujoco
 import numpy as np
 
 import jaxlimits as jl
+from jaxlimits.envs.content_cache import LruCache, array_key, model_bytes
 
 _SHIELDABLE = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 _INTEGRATORS = {
@@ -230,8 +230,7 @@ class Robot:
             if isinstance(x, jl.JointLimits):
                 leaves, has_jerk = x.tree_flatten()
                 return has_jerk, tuple(digest(leaf) for leaf in leaves)
-            a = np.ascontiguousarray(x)
-            return (a.dtype.str, a.shape, a.tobytes())
+            return array_key(x)
 
         return tuple((f.name, digest(getattr(self, f.name))) for f in dataclasses.fields(self))
 
@@ -270,11 +269,7 @@ class Robot:
                 robot = cls._read(mj_model, *args)
             hit = (robot, tuple((w.message, w.category) for w in caught))
             if key is not None:
-                _READ_CACHE[key] = hit
-                if len(_READ_CACHE) > _READ_CACHE_MAX:
-                    _READ_CACHE.popitem(last=False)
-        else:
-            _READ_CACHE.move_to_end(key)
+                _READ_CACHE.put(key, hit)
         for message, category in hit[1]:
             warnings.warn(message, category, stacklevel=2)
         return hit[0]
@@ -410,8 +405,7 @@ class Robot:
         return q * self.limited.astype(np.float32), lim.replace(q_min=q_min, q_max=q_max)
 
 
-_READ_CACHE = collections.OrderedDict()  # (model bytes' digest, arguments) -> (Robot, warnings), Robot.from_model
-_READ_CACHE_MAX = 32
+_READ_CACHE = LruCache(32)  # (model bytes' digest, arguments) -> (Robot, warnings), Robot.from_model
 
 
 def _read_key(mj_model, args):
@@ -426,16 +420,14 @@ def _read_key(mj_model, args):
         a = np.asarray(x)
         if a.dtype.kind not in "biuf":
             raise TypeError
-        a = np.ascontiguousarray(a, np.float64)
-        return (a.shape, a.tobytes())
+        return array_key(a.astype(np.float64))
 
     try:
         parts = tuple(part(x) for x in args)
     except (TypeError, ValueError):
         return None
     try:
-        buf = np.empty(mujoco.mj_sizeModel(mj_model), np.uint8)
-        mujoco.mj_saveModel(mj_model, None, buf)
+        buf = model_bytes(mj_model)
     except Exception:  # noqa: BLE001  (a model MuJoCo cannot serialise is read every time)
         return None
     return hashlib.sha1(buf).hexdigest(), parts

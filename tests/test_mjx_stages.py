@@ -56,6 +56,37 @@ def test_a_stage_is_traced_once_per_model_and_equals_mjxs_own():
         assert len(calls) == 2
 
 
+def test_models_of_equal_content_share_the_trace_and_others_do_not():
+    """A model put again from the same MJCF (another env of it: a test's, a vector env's copy) reuses the first
+    one's trace; one that differs anywhere (a mass, or a static field such as the integrator) gets its own, and
+    a model holding an object of unknown content is keyed on its identity."""
+    sys, d = _system_and_data()
+    again, _ = _system_and_data()
+    assert again is not sys
+    calls = []
+    stage = _counting(calls)
+    with jax.numpy_rank_promotion("allow"):
+        first = jax.jit(lambda d: stage(sys, d).qfrc_bias)(d)
+        second = jax.jit(lambda d: stage(again, d).qfrc_bias)(d)
+        assert len(calls) == 1, "a model of equal content was traced again"
+        np.testing.assert_array_equal(first, second)
+        heavier = again.tree_replace({"body_mass": again.body_mass * 2.0})
+        heavier_bias = jax.jit(lambda d: stage(heavier, d).qfrc_bias)(d)
+        assert len(calls) == 2 and not np.array_equal(heavier_bias, first)
+        rk4 = sys.replace(opt=sys.opt.replace(integrator=mjx.IntegratorType.RK4))
+        jax.jit(lambda d: stage(rk4, d).qfrc_bias)(d)
+        assert len(calls) == 3, "a static field's change must not share the trace"
+
+    class Opaque:  # an object whose content no key can read: nothing is shared on its account
+        pass
+
+    odd = [sys.replace(names=Opaque()) for _ in range(2)]
+    keys = [mjx_stages._model_key(m) for m in odd]
+    assert keys[0][0] == keys[1][0] == "id" and keys[0] != keys[1]
+    assert mjx_stages._model_key(odd[0]) == keys[0]  # the same object: the same key
+    assert mjx_stages._model_key(again)[0] == "content"
+
+
 def test_an_evaluators_sharded_episodes_reuse_the_trace_and_pmap_gets_its_own(monkeypatch):
     """The sharded evaluator's episode data carry its mesh in their types, in several variants within one episode
     (reset's, a scan's carry), unlike the same data in an unsharded program; ``jax.jit``'s own trace cache missed
