@@ -44,9 +44,6 @@ class LruCache:
     def __len__(self) -> int:
         return len(self._entries)
 
-    def clear(self) -> None:
-        self._entries.clear()
-
 
 def array_key(x) -> tuple:
     """``(dtype, shape, bytes)`` of an array-like (NumPy, JAX or a scalar): equal exactly for equal contents."""

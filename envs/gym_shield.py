@@ -64,7 +64,6 @@ NaN guard): it counts the violations the shield prevents.
 
 from __future__ import annotations
 
-
 import gymnasium
 import jax
 import jax.numpy as jnp
@@ -72,8 +71,8 @@ import mujoco
 import numpy as np
 from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 
-from jaxlimits.envs.content_cache import LruCache
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
+from jaxlimits.envs.content_cache import LruCache
 from jaxlimits.envs.fork_guard import check_not_forked_from_jax
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, RK4_MARGIN, RK4_RESTEP, SafeAcceleration
 from jaxlimits.envs.robot import Robot

@@ -79,8 +79,9 @@ def _traces(stage, sys) -> dict | None:
     hit = _TRACES.get(key)
     if hit is not None and (model_key[0] == "content" or hit[0] is sys):
         return hit[1]
-    _TRACES.put(key, (sys, {}))
-    return _TRACES.get(key)[1]
+    traces = {}
+    _TRACES.put(key, (sys, traces))
+    return traces
 
 
 def traced_once(stage):

@@ -31,14 +31,13 @@ so the realised acceleration is constant only to first order; measured in the te
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import warnings
 
 import mujoco
 import numpy as np
 
 import jaxlimits as jl
-from jaxlimits.envs.content_cache import LruCache, array_key, model_bytes
+from jaxlimits.envs.content_cache import LruCache, array_key, content_digest
 
 _SHIELDABLE = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 _INTEGRATORS = {
@@ -427,10 +426,10 @@ def _read_key(mj_model, args):
     except (TypeError, ValueError):
         return None
     try:
-        buf = model_bytes(mj_model)
+        digest = content_digest(mj_model)  # its MJB bytes (model_bytes)
     except Exception:  # noqa: BLE001  (a model MuJoCo cannot serialise is read every time)
         return None
-    return hashlib.sha1(buf).hexdigest(), parts
+    return digest, parts
 
 
 TORQUE_MARGIN = 0.9  # fraction of each actuator's torque range the shield plans with (M, h change in a step)
