@@ -43,6 +43,7 @@ normal impulse delivered in the step, clipped to ``impulse_limit`` [N s] per ste
 from __future__ import annotations
 
 import functools
+import itertools
 import pathlib
 import tempfile
 from typing import NamedTuple
@@ -93,7 +94,7 @@ def wall_xml(
     ls_iterations: int = 8,
 ) -> str:
     """Path of the generated scene MJCF (``assets/<arm>`` + ``ee_ball`` at its site ``ee`` + mocap wall),
-    cached per process.
+    cached per process; the file lives in a temporary folder removed at the interpreter's exit.
 
     ``solver_iterations`` / ``ls_iterations``: the constraint solver's caps (MuJoCo's defaults are 100 /
     50). MuJoCo stops at its tolerance, but under ``vmap`` MJX's solver loop runs until the *whole batch*
@@ -121,9 +122,21 @@ def wall_xml(
     g.condim = ball.condim
     g.rgba = [0.3, 0.5, 0.8, 0.5]
     spec.compile()
-    path = pathlib.Path(tempfile.mkdtemp(prefix="jaxlimits_wall_")) / f"{pathlib.Path(arm).stem}_wall.xml"
+    path = pathlib.Path(_scene_dir().name) / f"{pathlib.Path(arm).stem}_wall_{next(_SCENE_COUNT)}.xml"
     path.write_text(spec.to_xml())
     return str(path)
+
+
+_SCENES: list[tempfile.TemporaryDirectory] = []
+_SCENE_COUNT = itertools.count()
+
+
+def _scene_dir() -> tempfile.TemporaryDirectory:
+    """The process's folder of generated scenes, removed when the interpreter exits (each process used to
+    leave a ``jaxlimits_wall_*`` folder behind in the system's temporary directory)."""
+    if not _SCENES:
+        _SCENES.append(tempfile.TemporaryDirectory(prefix="jaxlimits_wall_"))
+    return _SCENES[0]
 
 
 def _quat_z_to(direction) -> np.ndarray:

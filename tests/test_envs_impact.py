@@ -203,3 +203,16 @@ def test_anticipating_cap_holds_after_any_joints_brake():
     w_plus_p, _, cap_p, infeasible_p = braked_speed(plain)
     assert np.all(cap <= cap_p * (1 + 1e-6))  # rest inside the pre-impact range: never a larger cap
     assert np.sum((infeasible_p == 0) & (w_plus_p > cap_p * 1.05)) >= 5
+
+
+def test_the_generated_scene_is_removed_when_the_process_exits():
+    """``wall_xml`` writes its scene into a temporary folder; a process that built one leaves nothing behind."""
+    import pathlib
+    import subprocess
+    import sys
+
+    code = "from jaxlimits.envs.wall_strike import wall_xml; p = wall_xml(); print(p); print(open(p).read()[:8])"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    path = pathlib.Path(out[-2])
+    assert out[-1] == "<mujoco" and path.name.startswith("panda_wall_")
+    assert not path.exists() and not path.parent.exists()
