@@ -126,3 +126,75 @@ def test_from_model_is_cached_on_the_models_content_and_the_arguments():
         stronger = Robot.from_model(pusher, v_max=[2.0] * 7)
     assert stronger is not first and stronger.gear[0] == 2.0 * first.gear[0]
     assert not np.array_equal(stronger.limits.a_max, first.limits.a_max)  # derived from the changed model
+
+
+LEG = """
+<mujoco><compiler angle="radian"/><option timestep="0.002" integrator="Euler" gravity="0 0 {g}"/>
+  <worldbody>
+    <body name="torso" pos="0 0 1">{base}<geom type="box" size="0.1 0.1 0.1" mass="5" contype="0" conaffinity="0"/>
+      <body name="thigh"><joint name="hip" axis="0 1 0" range="-1 1"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.4" size="0.04" mass="1" contype="0" conaffinity="0"/>
+        <body name="shin" pos="0 0 -0.4"><joint name="knee" axis="0 1 0" range="-2 0"/>
+          <geom type="capsule" fromto="0 0 0 0.1 0 -0.4" size="0.03" mass="0.5" contype="0" conaffinity="0"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="hip" gear="40" ctrlrange="-1 1"/><motor joint="knee" gear="30" ctrlrange="-1 1"/></actuator>
+</mujoco>"""
+
+
+def _leg(floating=True, g=-9.81):
+    return mujoco.MjModel.from_xml_string(LEG.format(base="<freejoint/>" if floating else "", g=g))
+
+
+def test_a_floating_bases_joint_dynamics_are_what_mujoco_integrates():
+    """``joint_dynamics``: with a free base, the joints' ``tau = M_s a - f_s`` is the Schur complement of the
+    base's dofs (the base accelerating freely), checked against MuJoCo's own ``qacc`` at random states; the
+    actuation applies the torque of that equation (the decision's torque rows keep the base held:
+    ``actuation.TorqueModel``)."""
+    from jaxlimits.envs.robot import joint_dynamics
+
+    m = _leg()
+    r = Robot.from_model(m, v_max=3.0)
+    assert r.coupled and list(r.names) == ["hip", "knee"]
+    d, rng = mujoco.MjData(m), np.random.default_rng(0)
+    act = CActuation(r, m)
+    full = np.zeros((m.nv, m.nv))
+    for _ in range(20):
+        d.qpos[:] = m.qpos0 + np.r_[rng.normal(0, 0.1, 3), 0, 0, 0, 0, rng.uniform(-0.5, 0.5), rng.uniform(-1.5, -0.2)]
+        quat = rng.normal(size=4)
+        d.qpos[3:7] = quat / np.linalg.norm(quat)
+        d.qvel[:] = rng.normal(0, 1.0, m.nv)
+        tau = rng.uniform(-20, 20, 2)
+        d.ctrl[:] = 0.0
+        d.qfrc_applied[:] = 0.0
+        d.qfrc_applied[r.dof_adr] = tau
+        mujoco.mj_forward(m, d)
+        mujoco.mj_fullM(m, d, full)
+        M_s, f_s = joint_dynamics(np, full, d.qfrc_passive - d.qfrc_bias, r.dof_adr, r.other_dofs, True)
+        np.testing.assert_allclose(d.qacc[r.dof_adr], np.linalg.solve(M_s, tau + f_s), rtol=1e-9, atol=1e-9)
+        # the fixed-base block alone (what the torque rows and a_max used before) is another equation here
+        assert not np.allclose(full[np.ix_(r.dof_adr, r.dof_adr)], M_s, rtol=1e-3)
+        # the actuation applies that equation's torque (unsaturated) and the joints get ``a``
+        d.qfrc_applied[:] = 0.0
+        a = rng.uniform(-0.5, 0.5, 2) * r.limits.a_max
+        v0 = d.qvel[r.dof_adr].copy()
+        _, M_eff, f_other = act.smooth_stage(d, np.zeros(m.nu))
+        M_s, f_s = joint_dynamics(np, M_eff, f_other, r.dof_adr, r.other_dofs, True)
+        inv, _ = act.finish_substep(d, M_eff, f_other, a)
+        assert not inv.saturated.any()
+        np.testing.assert_allclose(M_s @ a - f_s, r.gear * d.actuator_force, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose((d.qvel[r.dof_adr] - v0) / m.opt.timestep, a, rtol=1e-7, atol=1e-7)
+
+
+def test_a_floating_bases_a_max_is_its_legs_capacity_with_the_base_held():
+    """The torque-derived ``a_max`` (Alg. 4) of a floating leg is taken with its base held at ``qpos0``, as if
+    welded to the world (the leg carries its weight, as in stance), not with the base free as the torque rows
+    take it (there gravity would load no joint: measured, the legs then struck the floor harder than their
+    motors hold; ``robot._braking_capacity``)."""
+    free, welded = (Robot.from_model(_leg(floating), v_max=3.0) for floating in (True, False))
+    assert free.coupled and not welded.coupled
+    np.testing.assert_allclose(free.limits.a_max, welded.limits.a_max, rtol=1e-12)
+    weightless = Robot.from_model(_leg(True, g=0.0), v_max=3.0)
+    assert np.all(free.limits.a_max < weightless.limits.a_max)
