@@ -376,13 +376,16 @@ class Robot:
             )
         if a is None:
             if not np.all(s_brake > 0):
+                # a joint that cannot brake alone zeroes the others' shared scale too: name only it, then
                 alone = {names[i]: float(s_brake[i]) for i in np.flatnonzero(s_brake < 0)}
                 together = [names[i] for i in np.flatnonzero(s_brake == 0)]
                 raise ValueError(
                     "the actuators cannot brake "
-                    + (f"joints {alone} [rad/s^2 available, braking alone]" if alone else "")
-                    + (" and " if alone and together else "")
-                    + (f"joints {together} while the others brake too (the coupling of M)" if together else "")
+                    + (
+                        f"joints {alone} [rad/s^2 available, braking alone]"
+                        if alone
+                        else f"joints {together} while the others brake too (the coupling of M)"
+                    )
                     + f" at the {quantile:.1%} quantile of the states sampled within v_max; pass a_max= explicitly "
                     "or lower v_max"
                 )

@@ -198,3 +198,17 @@ def test_a_floating_bases_a_max_is_its_legs_capacity_with_the_base_held():
     np.testing.assert_allclose(free.limits.a_max, welded.limits.a_max, rtol=1e-12)
     weightless = Robot.from_model(_leg(True, g=0.0), v_max=3.0)
     assert np.all(free.limits.a_max < weightless.limits.a_max)
+
+
+def test_a_joint_that_cannot_brake_is_named_with_its_shortfall():
+    """A hip motor too weak for the leg's weight: the eager error names it, says it cannot brake even alone, with
+    the (negative) acceleration available, and what to pass instead."""
+    m = _leg(floating=False)
+    m.actuator_gear[0, 0] = 0.1
+    with pytest.raises(
+        ValueError,
+        match=r"cannot brake joints \{'hip': -[0-9.]+\} \[rad/s\^2 available, braking "
+        r"alone\] at the 5.0% quantile.*pass a_max= explicitly or lower v_max",
+    ) as err:
+        Robot.from_model(m, v_max=3.0)
+    assert "knee" not in str(err.value)
