@@ -647,10 +647,11 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: flo
 
     A floating or planar base is *held* at ``qpos0`` here (its legs carry their own weight, as in stance; so are
     the decision's torque rows, ``actuation.TorqueModel``), not left to accelerate freely as the actuation
-    realises it (``joint_dynamics``, exact in flight). Measured both ways: the free base's capacity drops gravity from the joints entirely (Brax
-    ``hopper``'s thigh 2.95 -> 91 rad/s^2; Gymnasium's ``Humanoid`` and ``Swimmer`` would build) and the
-    legs then strike the floor harder than their motors hold (Brax ``hopper``: 315 / 40 position / velocity
-    violating steps of 25 600 adversarial ones instead of 26 / 17; ``walker2d`` no better)."""
+    realises it (``joint_dynamics`` with ``coupled``, exact in flight). Measured both ways: the free base's
+    capacity drops gravity from the joints entirely (Brax ``hopper``'s thigh 2.95 -> 91 rad/s^2; Gymnasium's
+    ``Humanoid`` and ``Swimmer`` would build) and the legs then strike the floor harder than their motors hold
+    (Brax ``hopper``: 315 / 40 position / velocity violating steps of 25 600 adversarial ones instead of
+    26 / 17; ``walker2d`` no better)."""
     d = mujoco.MjData(mjm)
     dofs, qadr = robot["dof_adr"], robot["qpos_adr"]
     n = len(dofs)
@@ -672,8 +673,8 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: flo
         mujoco.mj_fwdVelocity(mjm, d)
         mujoco.mj_fullM(mjm, d, full)
         Me = full + robot["timestep"] * np.diag(robot["implicit_damping"])
-        M[i] = Me[np.ix_(dofs, dofs)]
-        h[i] = (d.qfrc_bias - d.qfrc_passive)[dofs]
+        M[i], f_s = joint_dynamics(np, Me, d.qfrc_passive - d.qfrc_bias, dofs, None, False)  # the base held
+        h[i] = -f_s
         lo[i], hi[i] = shrink(*torque_range(np, arrays, qs[i], vs[i], control_dt, a_guess))
     sigma = np.where(vs >= 0, 1.0, -1.0)  # braking acceleration is -sigma
     # braking joint i by s_i: tau_i = h_i - sigma_i M_ii s_i + sum_j M_ij a_j must stay inside the range on

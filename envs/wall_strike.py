@@ -127,16 +127,14 @@ def wall_xml(
     return str(path)
 
 
-_SCENES: list[tempfile.TemporaryDirectory] = []
 _SCENE_COUNT = itertools.count()
 
 
+@functools.cache
 def _scene_dir() -> tempfile.TemporaryDirectory:
     """The process's folder of generated scenes, removed when the interpreter exits (each process used to
     leave a ``jaxlimits_wall_*`` folder behind in the system's temporary directory)."""
-    if not _SCENES:
-        _SCENES.append(tempfile.TemporaryDirectory(prefix="jaxlimits_wall_"))
-    return _SCENES[0]
+    return tempfile.TemporaryDirectory(prefix="jaxlimits_wall_")
 
 
 def _quat_z_to(direction) -> np.ndarray:
