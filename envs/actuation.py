@@ -105,6 +105,15 @@ def as_slice(idx):
     return idx
 
 
+def shielded_torque(xp, robot_arrays, actuator_force):
+    """``(n,)`` [N m or N] the shielded actuators' part of ``qfrc_actuator`` on their joints, from their
+    ``actuator_force`` ``(n,)``: ``gear force``, with the force held in ``force_range``, where a joint's
+    ``actuatorfrcrange`` clamps it (MuJoCo clamps ``qfrc_actuator``, not ``actuator_force``; elsewhere the
+    force already lies in the range)."""
+    _, _, gear, _, _, _, f_rng = robot_arrays
+    return gear * xp.clip(actuator_force, f_rng[:, 0], f_rng[:, 1])
+
+
 def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None):
     """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring. ``dtau`` ``(n,)`` [N m]: a
     torque added to the one realising ``a`` (the contact correction; where the actuators lack it, that is a
@@ -287,7 +296,9 @@ class MjxActuation:
         M_eff = mjx_stages.full_m(sys, d) + jnp.diag(jnp.asarray(self._damping, d.qvel.dtype))
         dofs = self._arrays[0]
         f_env = d.qfrc_smooth
-        f_other = f_env.at[dofs].add(-self._arrays[2] * d.actuator_force[self._act]) - self._stiff * d.qvel
+        f_other = (
+            f_env.at[dofs].add(-shielded_torque(jnp, self._arrays, d.actuator_force[self._act])) - self._stiff * d.qvel
+        )
         return d, M_eff, f_other
 
     def asked_acceleration(self, d, M_eff):
@@ -417,7 +428,7 @@ class CActuation:
         M_eff[self._diag] += self._damping
         f_env = d.qfrc_smooth.copy()
         f_other = f_env.copy()
-        f_other[self._dofs] -= self._arrays[2] * d.actuator_force[self._act]
+        f_other[self._dofs] -= shielded_torque(np, self._arrays, d.actuator_force[self._act])
         if self._rk4:
             f_other -= self._stiff * d.qvel
         a_des = np.linalg.solve(M_eff, f_env)[self._dofs] if want_a_des else None

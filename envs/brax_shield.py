@@ -94,6 +94,7 @@ _SYNCED_FIELDS = (
     "actuator_biasprm",
     "actuator_ctrlrange",
     "actuator_forcerange",
+    "jnt_actfrcrange",
     "jnt_range",
     "dof_damping",
     "dof_armature",

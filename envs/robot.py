@@ -306,9 +306,13 @@ class Robot:
         for a in aids:
             _check_actuator(mjm, int(a))
         n = len(jids)
-        if np.any(mjm.jnt_actfrclimited[jids]):
-            bad = [names[i] for i in np.flatnonzero(mjm.jnt_actfrclimited[jids])]
-            raise ValueError(f"joints {bad} have actuatorfrcrange (a joint-level force clamp); not supported")
+        clamped = mjm.jnt_actfrclimited[jids].astype(bool)
+        if clamped.any() and mjm.body_gravcomp.any() and np.any(mjm.jnt_actgravcomp[jids] & clamped):
+            bad = [names[i] for i in np.flatnonzero(mjm.jnt_actgravcomp[jids] & clamped)]
+            raise ValueError(
+                f"joints {bad} have both actuatorfrcrange and actuatorgravcomp: MuJoCo clamps the actuator's force "
+                "and the gravity compensation together, which the shield does not model; not supported"
+            )
         qadr = mjm.jnt_qposadr[jids].astype(np.int64)
         dadr = mjm.jnt_dofadr[jids].astype(np.int64)
         limited = mjm.jnt_limited[jids].astype(bool)
@@ -316,6 +320,16 @@ class Robot:
         q_min = np.where(limited, rng[:, 0], -1.0)  # placeholders for unlimited joints (see bound_positions)
         q_max = np.where(limited, rng[:, 1], 1.0)
         gear, gain, bias, ctrl_range, force_range = actuator_arrays(np, mjm, mjm, aids, np.float64)
+        empty = force_range[:, 0] > force_range[:, 1]
+        if np.any(empty):
+            bad = {
+                names[i]: (mjm.actuator_forcerange[aids[i]].tolist(), mjm.jnt_actfrcrange[jids[i]].tolist())
+                for i in np.flatnonzero(empty)
+            }
+            raise ValueError(
+                f"joints {{name: (actuator forcerange, joint actuatorfrcrange)}} {bad}: the actuator's force range and its "
+                "joint's actuatorfrcrange (over the gear) do not overlap"
+            )
         unbounded = ~np.isfinite(force_range).all(axis=1) & ~np.isfinite(ctrl_range).all(axis=1)
         if np.any(unbounded):
             raise ValueError(
@@ -460,7 +474,9 @@ def torque_range(xp, robot_arrays, q, v, dt=0.0, a_max=0.0):
 
 def actuator_arrays(xp, structure, values, actuator_ids, dtype):
     """``(gear, gain, bias, ctrl_range, force_range)`` of the actuators ``actuator_ids`` ``(n,)``, as ``Robot``'s
-    fields: which have an affine bias and which ranges are limited from ``structure`` (the model the robot is read
+    fields (``force_range``: the actuator's ``forcerange`` intersected with its joint's ``actuatorfrcrange`` over the
+    gear; may be empty, ``Robot.from_model`` refuses that): which have an affine bias and which ranges are limited
+    from ``structure`` (the model the robot is read
     from), the values from ``values`` (the same model, or a Brax ``System`` or live ``MjModel`` whose values a domain
     randomisation changed: traced under ``vmap`` with ``xp = jnp``); ``±inf`` where a range is not limited."""
     act = np.asarray(actuator_ids)
@@ -471,12 +487,22 @@ def actuator_arrays(xp, structure, values, actuator_ids, dtype):
         limited = np.asarray(limited)[act].astype(bool)
         return xp.where(limited[:, None], xp.asarray(field, dtype)[act], unbounded)
 
+    gear = xp.asarray(values.actuator_gear, dtype)[act, 0]
+    force = ranged(values.actuator_forcerange, structure.actuator_forcelimited)
+    # MuJoCo clamps the total actuator force on a joint to its actuatorfrcrange (qfrc_actuator, after each actuator's
+    # own forcerange): for the joint's one actuator that is a range of its force, the joint's range over the gear
+    joint = np.asarray(structure.actuator_trnid)[act, 0]
+    clamped = np.asarray(structure.jnt_actfrclimited)[joint].astype(bool)
+    if clamped.any():
+        per_force = xp.sort(xp.asarray(values.jnt_actfrcrange, dtype)[joint] / gear[:, None], axis=1)
+        per_force = xp.where(clamped[:, None], per_force, unbounded)
+        force = xp.stack([xp.maximum(force[:, 0], per_force[:, 0]), xp.minimum(force[:, 1], per_force[:, 1])], axis=1)
     return (
-        xp.asarray(values.actuator_gear, dtype)[act, 0],
+        gear,
         xp.asarray(values.actuator_gainprm, dtype)[act, 0],
         xp.where(affine[:, None], xp.asarray(values.actuator_biasprm, dtype)[act, :3], 0.0),
         ranged(values.actuator_ctrlrange, structure.actuator_ctrllimited),
-        ranged(values.actuator_forcerange, structure.actuator_forcelimited),
+        force,
     )
 
 

@@ -49,8 +49,10 @@ def models(draw):
             "huge": 'range="-1e30 1e30"',
         }[rng]
         axis = "" if jtype == "ball" else 'axis="0 1 0"'
+        # a joint-level clamp of the actuator force (read as the actuator's force range over its gear)
+        frc = draw(st.sampled_from([""] * 6 + ['actuatorfrcrange="-3 3"', 'actuatorfrcrange="2 5"']))
         bodies += (
-            f'<body name="b{i}" pos="0.3 0 0"><joint name="{j}" type="{jtype}" {axis} {rng_attr}/>'
+            f'<body name="b{i}" pos="0.3 0 0"><joint name="{j}" type="{jtype}" {axis} {rng_attr} {frc}/>'
             f'<geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/><site name="s_{j}"/>'
         )
         tendons += f'<fixed name="t_{j}"><joint joint="{j}" coef="1"/></fixed>' if jtype != "ball" else ""

@@ -212,3 +212,125 @@ def test_a_joint_that_cannot_brake_is_named_with_its_shortfall():
     ) as err:
         Robot.from_model(m, v_max=3.0)
     assert "knee" not in str(err.value)
+
+
+CLAMP = """
+<mujoco><compiler angle="radian"/><option timestep="0.002" integrator="{integrator}"/>
+  <worldbody>
+    <body name="l1"><joint name="j1" axis="0 1 0" range="-1 1" damping="0.3" {clamp1}/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
+      <body name="l2" pos="0.3 0 0"><joint name="j2" axis="0 1 0" range="-2 2" {clamp2}/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="0.5"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="j1" gear="{gear}" ctrlrange="-1 1" {range1}/>
+    <position joint="j2" kp="60" kv="2" ctrlrange="-2 2" {range2}/></actuator>
+</mujoco>"""
+
+
+def _clamp_pair(integrator="Euler", gear=50.0):
+    """Two models MuJoCo drives alike: joint-level ``actuatorfrcrange`` (20 N m on j1, whose motor could give 50; 4
+    N m on j2) and the same limits as the actuators' own ``forcerange``."""
+    joint = dict(clamp1='actuatorfrcrange="-20 20"', clamp2='actuatorfrcrange="-4 4"', range1="", range2="")
+    own = dict(
+        clamp1="", clamp2="", range1=f'forcerange="{-20 / abs(gear)} {20 / abs(gear)}"', range2='forcerange="-4 4"'
+    )
+    return tuple(
+        mujoco.MjModel.from_xml_string(CLAMP.format(integrator=integrator, gear=gear, **kw)) for kw in (joint, own)
+    )
+
+
+@pytest.mark.parametrize("gear", [50.0, -50.0])
+def test_a_joints_actuatorfrcrange_is_its_actuators_force_range(gear):
+    clamped, own = (Robot.from_model(m, v_max=2.0) for m in _clamp_pair(gear=gear))
+    np.testing.assert_allclose(clamped.force_range, [[-0.4, 0.4], [-4.0, 4.0]])
+    np.testing.assert_array_equal(clamped.force_range, own.force_range)
+    np.testing.assert_array_equal(clamped.tau_max, own.tau_max)  # the braking capacity sees the clamp
+    np.testing.assert_array_equal(clamped.limits.a_max, own.limits.a_max)
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast"])
+def test_the_actuation_under_a_joint_force_clamp_is_that_of_the_same_forcerange(integrator):
+    """The env's ``ctrl`` past the clamp (MuJoCo clamps ``qfrc_actuator``, not ``actuator_force``): the asked
+    acceleration and the other forces are those of the model whose actuators carry the limit; the shield's own
+    commands stay inside it, so the acceleration it decides is realised exactly in both."""
+    models = _clamp_pair(integrator)
+    robots = [Robot.from_model(m, v_max=2.0) for m in models]
+    acts = [CActuation(r, m) for r, m in zip(robots, models)]
+    datas = [mujoco.MjData(m) for m in models]
+    rng = np.random.default_rng(1)
+    worst, inside = 0.0, 0
+    for _ in range(60):
+        q, v = rng.uniform(-0.9, 0.9, 2), rng.uniform(-2.0, 2.0, 2)
+        ctrl = rng.choice([-1.0, 1.0], 2) * [1.0, 2.0]  # full ctrl: 50 N m asked of j1, clamped to 20
+        a = rng.uniform(-0.5, 0.5, 2) * robots[0].limits.a_max
+        out = []
+        for act, d, m in zip(acts, datas, models):
+            d.qpos[:], d.qvel[:] = q, v
+            a_des, M, f = act.smooth_stage(d, ctrl)
+            inv, _ = act.finish_substep(d, M, f, a)
+            out.append((a_des, f, inv.saturated, (d.qvel - v) / m.opt.timestep))
+        (a_c, f_c, s_c, r_c), (a_o, f_o, s_o, r_o) = out
+        np.testing.assert_allclose(a_c, a_o, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(f_c, f_o, rtol=1e-12, atol=1e-9)
+        np.testing.assert_array_equal(s_c, s_o)
+        np.testing.assert_allclose(r_c, r_o, rtol=1e-12, atol=1e-9)
+        if not s_c.any():  # a saturated joint moves the other through M
+            worst = max(worst, float(np.max(np.abs(r_c - a))))
+            inside += 1
+    assert inside > 20 and worst < 1e-9, (inside, worst)
+
+
+@pytest.mark.parametrize(
+    "clamp1, range1, gravcomp, message",
+    [
+        # MuJoCo clamps the actuator force and the gravity compensation together
+        ('actuatorfrcrange="-20 20" actuatorgravcomp="true"', "", True, r"\['j1'\] have both actuatorfrcrange and"),
+        (
+            'actuatorfrcrange="-0.1 0.1"',
+            'forcerange="5 10"',
+            False,
+            r"'j1': \(\[5.0, 10.0\], \[-0.1, 0.1\]\).*over the gear\) do not overlap",
+        ),
+    ],
+)
+def test_a_joint_force_clamp_the_shield_cannot_read_is_refused_with_the_joint(clamp1, range1, gravcomp, message):
+    xml = CLAMP.format(integrator="Euler", gear=50.0, clamp1=clamp1, clamp2="", range1=range1, range2="")
+    if gravcomp:
+        xml = xml.replace('<body name="l1">', '<body name="l1" gravcomp="1">')
+    with pytest.raises(ValueError, match=message):
+        Robot.from_model(mujoco.MjModel.from_xml_string(xml), v_max=2.0)
+
+
+def test_mjx_agrees_under_a_joint_force_clamp():
+    """MJX clamps ``qfrc_actuator`` by ``actuatorfrcrange`` too: its actuation gives C MuJoCo's other forces and
+    realises the decided acceleration (float32)."""
+    import jax
+    from mujoco import mjx
+
+    from jaxlimits.envs.actuation import MjxActuation
+
+    m = _clamp_pair()[0]
+    robot = Robot.from_model(m, v_max=2.0)
+    q, v, ctrl = np.array([0.3, -0.2]), np.array([0.5, -1.0]), np.array([1.0, 2.0])
+    a = np.array([3.0, -5.0])
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = q, v
+    a_c, _, f_c = CActuation(robot, m).smooth_stage(d, ctrl)
+    act = MjxActuation(robot, mjx.put_model(m))
+
+    @jax.jit
+    @jax.numpy_rank_promotion("allow")  # MJX's own code relies on it
+    def substep(d0):
+        dd, M, f = act.smooth_stage(d0, ctrl)
+        dn, inv, _ = act.finish_substep(dd, M, f, a.astype(np.float32))
+        return act.asked_acceleration(dd, M), f, (dn.qvel - dd.qvel) / m.opt.timestep, inv.saturated
+
+    d0 = mujoco.MjData(m)
+    d0.qpos[:], d0.qvel[:] = q, v
+    a_des, f, r, sat = jax.device_get(substep(mjx.put_data(m, d0)))
+    np.testing.assert_allclose(a_des, a_c, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(f, f_c, rtol=1e-4, atol=1e-4)
+    assert not sat.any()
+    np.testing.assert_allclose(r, a, atol=1e-3)
