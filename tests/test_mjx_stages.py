@@ -117,7 +117,7 @@ def test_an_evaluators_sharded_episodes_reuse_the_trace_and_pmap_gets_its_own(mo
         keys = jax.random.key_data(jax.random.split(jax.random.PRNGKey(0), 2))
         keys = jax.device_put(keys, NamedSharding(evaluator.mesh, PartitionSpec("episodes", None)))
         params = jax.device_put({"w": jnp.float32(0.5)}, NamedSharding(evaluator.mesh, PartitionSpec()))
-        return evaluator._run.trace(params, keys)
+        return evaluator.program.trace(params, keys)
 
     with jax.numpy_rank_promotion("allow"):
         jax.jit(env.reset).trace(jax.random.PRNGKey(1))  # unsharded types (e.g. Brax's own evaluator)

@@ -74,7 +74,7 @@ def test_trains_on_a_tiny_budget_with_zero_violations(tmp_path):
     # under rank promotion "allow" and the suite under "raise"); a fresh one on the reloaded checkpoint gives the
     # same row
     evaluator = brax_ppo.training_evaluator(cfg, cfg.eval_episodes)
-    assert evaluator is not None and evaluator._run._cache_size() == 1
+    assert evaluator is not None and evaluator.program._cache_size() == 1
     brax_ppo._LAST_EVALUATOR.clear()
     fresh = experiment.evaluate_run(tmp_path / "run", cfg.eval_episodes).row
     for k in ("return_mean", "success_rate", "final_distance_mean", "violations/position", "violations/velocity"):

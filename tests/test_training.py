@@ -237,7 +237,7 @@ def test_the_evaluator_batches_its_episodes_step_once(planar):
         ev = evaluate.Evaluator(
             env, evaluate.scripted_policy("random", env.action_size), episodes=3, episode_length=4, action_repeat=repeat
         )
-        jax.make_jaxpr(ev._run)(None, jax.random.key_data(jax.random.split(jax.random.PRNGKey(0), 3)))
+        jax.make_jaxpr(ev.program)(None, jax.random.key_data(jax.random.split(jax.random.PRNGKey(0), 3)))
         assert batchings == [3], (repeat, batchings)
 
 

@@ -215,6 +215,9 @@ class Evaluator:
     Compiled once per instance (reuse it to evaluate many parameter sets, e.g. during training).
     ``episodes`` is padded up to a multiple of the device count (the padding episodes use the
     following keys and are dropped), so any count works on any mesh.
+
+    ``program``: the jitted episodes program ``(params, keys) -> {name: (padded,)}`` (``keys`` ``(padded, 2)`` raw
+    key data) that ``sharded`` runs; public for inspection (``program.trace(...)``, ``jax.make_jaxpr(program)``).
     """
 
     def __init__(self, env, policy, *, episodes: int, episode_length: int, action_repeat: int = 1, devices=None):
@@ -228,7 +231,7 @@ class Evaluator:
         def run(params, keys):
             return _episodes(env, policy, params, keys, episode_length, action_repeat)
 
-        self._run = jax.jit(run)
+        self.program = jax.jit(run)
 
     def __call__(self, params, seed: int = 0) -> dict:
         return self.gather(self.sharded(params, seed))
@@ -236,7 +239,7 @@ class Evaluator:
     def sharded(self, params, seed: int = 0) -> dict:
         """The per-episode results as global ``jax.Array`` s ``(padded,)``, sharded over the mesh (not gathered)."""
         keys = _global_keys(seed, self.padded, NamedSharding(self.mesh, PartitionSpec("episodes", None)))
-        return self._run(_replicated(params, NamedSharding(self.mesh, PartitionSpec())), keys)
+        return self.program(_replicated(params, NamedSharding(self.mesh, PartitionSpec())), keys)
 
     def gather(self, sharded: dict) -> dict:
         """``sharded``'s arrays as NumPy arrays ``(episodes,)`` in every process (padding dropped)."""
