@@ -456,19 +456,27 @@ class CActuation:
             # where the shielded joints share a chain with unshielded dofs (a floating base, a gripper's fingers
             # against their limits) the corrected torque makes or breaks rows: corrected again from the rows it
             # met, as MJX does (RK4: one pass, then the retakes of _rk4_step_in_band)
-            for k in range(1 if self._rk4 else self._passes):
+            # Euler/implicitfast: the last correction is solved once more and the best torque evaluated is kept (a
+            # correction against a stiff contact can make it worse: its near-singular response asks far more than
+            # the actuators have, and clamped per actuator that torque no longer corrects)
+            passes = 1 if self._rk4 else self._passes
+            best = None  # (how far r left the band, ctrl, excess, sat, dtau)
+            for k in range(passes + (not self._rk4)):
                 mujoco.mj_fwdActuation(m, d)
                 mujoco.mj_fwdAcceleration(m, d)
                 mujoco.mj_fwdConstraint(m, d)
                 qfrc = d.qfrc_smooth + d.qfrc_constraint
                 r = np.linalg.solve(M_eff, qfrc)[self._dofs]
-                outside = np.any((r < band[0]) | (r > band[1]))
+                miss = float(np.max(np.abs(r - np.clip(r, band[0], band[1]))))
+                if best is None or miss < best[0]:
+                    best = (miss, ctrl, excess, sat, dtau)
+                outside = miss > 0.0
                 if k == 0 and (outside or self._rk4):
                     # the start's constraint rows (a copy of efc_J for RK4: the step overwrites it, and a retake
                     # may need their response, _rk4_step_in_band)
                     J = self._efc_jacobian(d)
                     rows = (self._full_m(d), J.copy() if self._rk4 else J, self._efc_d_active(d))
-                if not outside:
+                if not outside or k == passes:
                     break
                 J, D_active = (rows[1], rows[2]) if k == 0 else (self._efc_jacobian(d), self._efc_d_active(d))
                 step, out_k, dqacc = contact_correction(np, self._dofs, rows[0], M_eff, J, D_active, qfrc, band)
@@ -477,6 +485,9 @@ class CActuation:
                 d.qacc_warmstart[:] = d.qacc + dqacc
                 dtau = dtau + step
                 ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
+                d.ctrl[self._act] = ctrl
+            if not self._rk4 and best[1] is not ctrl:  # a correction made it worse: the best torque evaluated
+                _, ctrl, excess, sat, dtau = best
                 d.ctrl[self._act] = ctrl
         if self._rk4 and band is not None:
             inv = Inversion(ctrl, excess, sat)
