@@ -460,7 +460,7 @@ class CActuation:
             # correction against a stiff contact can make it worse: its near-singular response asks far more than
             # the actuators have, and clamped per actuator that torque no longer corrects)
             passes = 1 if self._rk4 else self._passes
-            best = None  # (how far r left the band, ctrl, excess, sat, dtau)
+            best = None  # (how far r left the band, ctrl, excess, sat)
             for k in range(passes + (not self._rk4)):
                 mujoco.mj_fwdActuation(m, d)
                 mujoco.mj_fwdAcceleration(m, d)
@@ -469,7 +469,7 @@ class CActuation:
                 r = np.linalg.solve(M_eff, qfrc)[self._dofs]
                 miss = float(np.max(np.abs(r - np.clip(r, band[0], band[1]))))
                 if best is None or miss < best[0]:
-                    best = (miss, ctrl, excess, sat, dtau)
+                    best = (miss, ctrl, excess, sat)
                 outside = miss > 0.0
                 if k == 0 and (outside or self._rk4):
                     # the start's constraint rows (a copy of efc_J for RK4: the step overwrites it, and a retake
@@ -487,7 +487,7 @@ class CActuation:
                 ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
                 d.ctrl[self._act] = ctrl
             if not self._rk4 and best[1] is not ctrl:  # a correction made it worse: the best torque evaluated
-                _, ctrl, excess, sat, dtau = best
+                _, ctrl, excess, sat = best  # (dtau is read after this only by RK4)
                 d.ctrl[self._act] = ctrl
         if self._rk4 and band is not None:
             inv = Inversion(ctrl, excess, sat)

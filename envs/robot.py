@@ -306,9 +306,9 @@ class Robot:
         for a in aids:
             _check_actuator(mjm, int(a))
         n = len(jids)
-        clamped = mjm.jnt_actfrclimited[jids].astype(bool)
-        if clamped.any() and mjm.body_gravcomp.any() and np.any(mjm.jnt_actgravcomp[jids] & clamped):
-            bad = [names[i] for i in np.flatnonzero(mjm.jnt_actgravcomp[jids] & clamped)]
+        both = mjm.jnt_actfrclimited[jids].astype(bool) & mjm.jnt_actgravcomp[jids].astype(bool)
+        if both.any() and mjm.body_gravcomp.any():
+            bad = [names[i] for i in np.flatnonzero(both)]
             raise ValueError(
                 f"joints {bad} have both actuatorfrcrange and actuatorgravcomp: MuJoCo clamps the actuator's force "
                 "and the gravity compensation together, which the shield does not model; not supported"
