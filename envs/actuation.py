@@ -65,6 +65,7 @@ from jaxlimits.envs.robot import (
     _implicit_damping,
     _rk4_stiffness,
     actuator_arrays,
+    clamp,
     joint_dynamics,
     shrink,
     sub_block,
@@ -111,7 +112,7 @@ def shielded_torque(xp, robot_arrays, actuator_force):
     ``actuatorfrcrange`` clamps it (MuJoCo clamps ``qfrc_actuator``, not ``actuator_force``; elsewhere the
     force already lies in the range)."""
     _, _, gear, _, _, _, f_rng = robot_arrays
-    return gear * xp.clip(actuator_force, f_rng[:, 0], f_rng[:, 1])
+    return gear * clamp(xp, actuator_force, f_rng[:, 0], f_rng[:, 1])
 
 
 def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None):
@@ -126,9 +127,9 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None)
     b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
     force_needed = tau / gear
     ctrl_needed = (force_needed - b) / gain
-    ctrl = xp.clip(ctrl_needed, c_rng[:, 0], c_rng[:, 1])
+    ctrl = clamp(xp, ctrl_needed, c_rng[:, 0], c_rng[:, 1])
     force_free = gain * ctrl + b
-    force = xp.clip(force_free, f_rng[:, 0], f_rng[:, 1])
+    force = clamp(xp, force_free, f_rng[:, 0], f_rng[:, 1])
     # saturated = a clamp is active (exact comparisons: the roundoff of gain * ctrl is not a saturation)
     saturated = (ctrl != ctrl_needed) | (force != force_free)
     excess = xp.where(saturated, xp.abs(gear * (force_needed - force)), 0.0)
@@ -165,7 +166,7 @@ def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=N
     does not leave it; ``out`` is still measured from the edge, and a dof inside the band stays where it is."""
     r = xp.linalg.solve(M_eff, qfrc)[dofs]
     lo, hi = band
-    out = r - xp.clip(r, lo, hi)
+    out = r - clamp(xp, r, lo, hi)
     target_out = out
     if inset is not None:
         inset = xp.minimum(inset, 0.5 * (hi - lo))
@@ -392,7 +393,9 @@ class CActuation:
         self._other_rows = other_rows_on_trees(model, robot)
         self._passes = MJX_CORRECTION_PASSES if robot.coupled else 1  # as MJX's (Euler, implicitfast)
         self._M = np.zeros((model.nv, model.nv))
-        self._diag = np.diag_indices(model.nv)
+        self._M_diag = np.einsum("ii->i", self._M)  # a writable view of the diagonal (no fancy-index copy)
+        self._zero_n = np.zeros(robot.n)
+        self._zero_n.flags.writeable = False
         self._act = as_slice(robot.actuator_ids)
         self._dofs = self._arrays[0]
         self._qadr = as_slice(robot.qpos_adr)
@@ -425,8 +428,8 @@ class CActuation:
         mujoco.mj_fwdAcceleration(m, d)
         mujoco.mj_fullM(m, d, self._M)
         M_eff = self._M
-        M_eff[self._diag] += self._damping
-        f_env = d.qfrc_smooth.copy()
+        self._M_diag += self._damping
+        f_env = d.qfrc_smooth
         f_other = f_env.copy()
         f_other[self._dofs] -= shielded_torque(np, self._arrays, d.actuator_force[self._act])
         if self._rk4:
@@ -451,7 +454,7 @@ class CActuation:
         q, v = d.qpos[self._qadr], d.qvel[self._dofs]
         ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled)
         d.ctrl[self._act] = ctrl
-        out, dtau, rows = None, np.zeros_like(v), None
+        out, dtau, rows = None, self._zero_n, None
         if band is not None and (d.ncon or self._other_rows) and self._rows_touch_trees(d):
             # where the shielded joints share a chain with unshielded dofs (a floating base, a gripper's fingers
             # against their limits) the corrected torque makes or breaks rows: corrected again from the rows it
@@ -467,7 +470,7 @@ class CActuation:
                 mujoco.mj_fwdConstraint(m, d)
                 qfrc = d.qfrc_smooth + d.qfrc_constraint
                 r = np.linalg.solve(M_eff, qfrc)[self._dofs]
-                miss = float(np.max(np.abs(r - np.clip(r, band[0], band[1]))))
+                miss = float(np.abs(r - clamp(np, r, band[0], band[1])).max())
                 if best is None or miss < best[0]:
                     best = (miss, ctrl, excess, sat)
                 outside = miss > 0.0
@@ -521,7 +524,7 @@ class CActuation:
             d.ctrl[self._act] = inv.ctrl
             mujoco.mj_step(m, d)
             r = (d.qvel[self._dofs] - v) / h
-            out = r - np.clip(r, lo, hi)
+            out = r - clamp(np, r, lo, hi)
             err = float(np.max(np.abs(out)))
             if k == 0 and err == 0.0:  # inside the band: the common case
                 return inv
@@ -565,7 +568,7 @@ class CActuation:
         trees. Where none has, the constraint forces leave the shielded dofs' acceleration exactly as without
         them (e.g. Pusher-v5's object resting on its table), and the check is skipped: as in a model without
         contacts, the realised acceleration is the inversion's."""
-        return bool(d.nefc) and bool(np.any(self._efc_jacobian(d)[:, self._tree_dofs]))
+        return bool(d.nefc) and bool(self._efc_jacobian(d)[:, self._tree_dofs].any())
 
     def _full_m(self, d: mujoco.MjData) -> np.ndarray:
         M = np.zeros((self.model.nv, self.model.nv))

@@ -319,19 +319,19 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             Q[k] = d.qpos[qadr]
             V[k + 1] = d.qvel[dofs]
             C[k] = d.qfrc_constraint[dofs]
-            if not disturbed and np.any(C[k] != 0.0):
+            if not disturbed and C[k].any():  # a nonzero (or NaN) constraint force
                 disturbed = self._disturbed(m, d)
             TE[k] = inv.torque_excess
             S[k] = inv.saturated
         mujoco.mj_rnePostConstraint(m, d)
 
         # reductions over the substeps, once per call
-        pos = max(float(np.max(np.maximum(Q - self._q_hi, self._q_lo - Q))), 0.0)
-        vel = max(float(np.max(np.abs(V[1:]) - self._v_max)), 0.0)
-        accel_error = float(np.max(np.abs((V[1:] - V[:-1]) / self._h - a_safe)))
+        pos = max(float(np.maximum(Q - self._q_hi, self._q_lo - Q).max()), 0.0)
+        vel = max(float((np.abs(V[1:]) - self._v_max).max()), 0.0)
+        accel_error = float(np.abs((V[1:] - V[:-1]) / self._h - a_safe).max())
         finite = np.isfinite(a_des)
         if finite.all():
-            intervention = float(np.max(np.abs(a_safe - a_des)))
+            intervention = float(np.abs(a_safe - a_des).max())
         else:
             intervention = float(np.max(np.abs(a_safe - a_des), where=finite, initial=0.0))
         self._records.append(
@@ -342,9 +342,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 "intervention": intervention,
                 "saturated": bool(S.any()),
                 "nonfinite": bad_in or self._brake or bool(out[4 * n] > 0.5),
-                "viable": bool(np.all(out[3 * n : 4 * n] > 0.5)),
+                "viable": bool((out[3 * n : 4 * n] > 0.5).all()),
                 "torque_conflict": bool(out[4 * n + 1] > 0.5),
-                "constrained": bool(np.any(C != 0.0)),
+                "constrained": bool(C.any()),
                 "disturbance": disturbed,
                 "accel_error": accel_error,
                 "contact_corrected": corrected,
@@ -352,7 +352,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 "a_safe": a_safe,
                 "lower": lower,
                 "upper": upper,
-                "beyond_bounds": max(float(np.max(np.maximum(a_safe - upper, lower - a_safe))), 0.0),
+                "beyond_bounds": max(float(np.maximum(a_safe - upper, lower - a_safe).max()), 0.0),
             }
         )
 
