@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxlimits.training.campaign_gym import GYM_TARGETS, _jitted_policy, episode_keys, to_action_box
+from jaxlimits.training.campaign_gym import GYM_TARGETS, jitted_policy, episode_keys, to_action_box
 
 CLASSES = ("toward_limit", "bang_bang", "random", "random_walk", "nan_burst")
 KINDS = ("onset", "in_contact", "after_contact", "no_contact")
@@ -57,7 +57,7 @@ def run_class(env, cls: str, steps: int) -> dict:
     trees = {int(m.body_rootid[m.jnt_bodyid[j]]) for j in shield.robot.joint_ids}
     arm_bodies = {b for b in range(m.nbody) if int(m.body_rootid[b]) in trees}
     low, high = env.action_space.low.astype(float), env.action_space.high.astype(float)
-    policy, classes = _jitted_policy(low.shape[0], 200)
+    policy, classes = jitted_policy(low.shape[0], 200)
     params = {"kind": jnp.asarray(classes.index(cls), jnp.int32)}
     counts = dict.fromkeys(KINDS + ("violating", "saturated"), 0)
     speeds = []

@@ -136,6 +136,12 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None)
     return ctrl, excess, saturated
 
 
+def band_excess(xp, r, lo, hi):
+    """``(n,)`` how far ``r`` lies outside ``[lo, hi]`` [rad/s^2], signed (positive above ``hi``, negative below ``lo``,
+    0 inside): the push a contact correction undoes (``xp`` = ``jnp`` or ``numpy``)."""
+    return r - clamp(xp, r, lo, hi)
+
+
 def contact_response(xp, dofs, M, M_eff, J, D_active):
     """``(G, H_inv)``: ``G`` ``(n, n)`` the change of the shielded dofs' realised acceleration per unit torque
     added on them, ``G = [M_eff^-1 M H^-1]_ss``, ``H = M + J^T diag(D_active) J`` (the constraint solver's
@@ -166,7 +172,7 @@ def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=N
     does not leave it; ``out`` is still measured from the edge, and a dof inside the band stays where it is."""
     r = xp.linalg.solve(M_eff, qfrc)[dofs]
     lo, hi = band
-    out = r - clamp(xp, r, lo, hi)
+    out = band_excess(xp, r, lo, hi)
     target_out = out
     if inset is not None:
         inset = xp.minimum(inset, 0.5 * (hi - lo))
@@ -470,7 +476,7 @@ class CActuation:
                 mujoco.mj_fwdConstraint(m, d)
                 qfrc = d.qfrc_smooth + d.qfrc_constraint
                 r = np.linalg.solve(M_eff, qfrc)[self._dofs]
-                miss = float(np.abs(r - clamp(np, r, band[0], band[1])).max())
+                miss = float(np.abs(band_excess(np, r, *band)).max())
                 if best is None or miss < best[0]:
                     best = (miss, ctrl, excess, sat)
                 outside = miss > 0.0
@@ -524,7 +530,7 @@ class CActuation:
             d.ctrl[self._act] = inv.ctrl
             mujoco.mj_step(m, d)
             r = (d.qvel[self._dofs] - v) / h
-            out = r - clamp(np, r, lo, hi)
+            out = band_excess(np, r, lo, hi)
             err = float(np.max(np.abs(out)))
             if k == 0 and err == 0.0:  # inside the band: the common case
                 return inv

@@ -65,7 +65,7 @@ GYM_MEASURED = ("position", "velocity", "torque")
 
 
 @functools.lru_cache(maxsize=None)
-def _jitted_policy(n: int, horizon: int):
+def jitted_policy(n: int, horizon: int):
     """``(jax.jit(policy), classes)`` of ``campaign_policy(n, horizon)`` (one per action size and horizon)."""
     import jax
 
@@ -124,7 +124,7 @@ class GymTarget:
         env = self.make(shield, max_episode_steps=episode_length)
         low = np.asarray(env.action_space.low, np.float64)
         high = np.asarray(env.action_space.high, np.float64)
-        policy, all_classes = _jitted_policy(low.shape[0], episode_length)
+        policy, all_classes = jitted_policy(low.shape[0], episode_length)
         obs, _ = env.reset(seed=0)
         key = episode_keys(seed, 0, chunk)[1]
         np.asarray(policy({"kind": jnp.asarray(0, jnp.int32)}, obs, key, np.int32(0)))  # compiles
