@@ -64,6 +64,8 @@ NaN guard): it counts the violations the shield prevents.
 
 from __future__ import annotations
 
+import warnings
+
 import gymnasium
 import jax
 import jax.numpy as jnp
@@ -96,6 +98,7 @@ def _zero_tally() -> dict:
         "torque_conflict": 0,
         "beyond_bounds": 0,
         "contact_corrected": 0,
+        "starts_outside": 0,
         "max_position_excess": 0.0,
         "max_velocity_excess": 0.0,
         "max_torque_excess": 0.0,
@@ -150,6 +153,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
       correct_contacts: where a contact would push a substep's realised acceleration out of the bounds, give
         the actuators the torque that holds it at their edge (``actuation`` module docstring; one more
         constraint solve in the substeps with contacts); counted in ``contact_corrected``.
+      start_inside: move the env's initial pose (``init_qpos``) inside the shielded joints' ranges, shrunk by the env's
+        reset noise (``_move_start_inside``): Gymnasium's Ant starts its ankles 0.52 rad outside their ranges, Hopper
+        and Walker2d their hips and knees at their upper limits plus noise, states no shield can answer for.
+        Without it such a start is warned about once and counted (``reset``).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes:
@@ -162,7 +169,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         (steps with ``info["shield"]["disturbance"]``), and
         the largest ``max_position_excess`` [rad or m], ``max_velocity_excess`` [rad/s or m/s],
         ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2],
-        and ``beyond_bounds``, ``contact_corrected`` (steps) with their largest values (``max_*``).
+        and ``beyond_bounds``, ``contact_corrected`` (steps) with their largest values (``max_*``), and
+        ``starts_outside`` (resets whose state lay outside the limits, ``reset``).
 
     Raises ``TypeError`` for an env that is not a MuJoCo env, ``ValueError`` (from ``Robot.from_model``
     / ``SafeAcceleration``) naming the joint, actuator or field that is missing or unsupported.
@@ -178,6 +186,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         method: str = "viability",
         torque_limits: bool = True,
         correct_contacts: bool = True,
+        start_inside: bool = False,
         **robot_kwargs,
     ):
         check_not_forked_from_jax("JointLimitShieldWrapper")  # before any JAX call (fork_guard)
@@ -190,6 +199,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             method=method,
             torque_limits=torque_limits,
             correct_contacts=correct_contacts,
+            start_inside=start_inside,
             **robot_kwargs,
         )
         gymnasium.Wrapper.__init__(self, env)
@@ -243,8 +253,49 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         self._records = []
         self._bufs = {}
         self._brake = False  # brake_on_next_step
+        self._warned_start = False
+        if start_inside:
+            self._move_start_inside()
         base._shielded_by = self
         base.do_simulation = self._do_simulation  # the one thing taken over (an instance attribute)
+
+    def _move_start_inside(self) -> None:
+        """``start_inside``: every limited shielded joint's ``init_qpos`` (the pose ``MujocoEnv.reset_model`` adds its
+        noise to) clipped into its range shrunk by the env's reset noise (``_reset_noise_scale``, uniform about
+        ``init_qpos`` in Gymnasium's locomotion envs; 0 where the env has none) and 1 % of the range."""
+        base, rob = self._base, self.robot
+        if not hasattr(base, "init_qpos"):
+            raise TypeError(f"start_inside=True moves the env's init_qpos; {type(base).__name__} has none")
+        noise = float(getattr(base, "_reset_noise_scale", 0.0))
+        lo, hi = np.asarray(rob.limits.q_min, float), np.asarray(rob.limits.q_max, float)
+        pad = np.minimum(noise + 0.01 * (hi - lo), 0.5 * (hi - lo))
+        q0 = base.init_qpos[rob.qpos_adr]
+        base.init_qpos[rob.qpos_adr] = np.where(rob.limited, np.clip(q0, lo + pad, hi - pad), q0)
+
+    def _start_violation(self) -> dict:
+        """The reset state's excess over the model's limits: ``{"position", "velocity"}`` [rad or m, rad/s or m/s]
+        of the shielded joints, 0.0 inside; the first one found outside is warned about, once per wrapper."""
+        d = self._base.data
+        q, v = d.qpos[self._qadr], d.qvel[self._dofs]
+        pos_ex = np.maximum(q - self._q_hi, self._q_lo - q)
+        vel_ex = np.abs(v) - self._v_max
+        out = {"position": max(float(pos_ex.max()), 0.0), "velocity": max(float(vel_ex.max()), 0.0)}
+        if (out["position"] > 0.0 or out["velocity"] > 0.0) and not self._warned_start:
+            self._warned_start = True
+            i = int(np.argmax(np.maximum(pos_ex, vel_ex)))
+            where = (
+                f"q = {q[i]:.4g} outside [{self._q_lo[i]:.4g}, {self._q_hi[i]:.4g}]"
+                if pos_ex[i] >= vel_ex[i]
+                else f"|v| = {abs(v[i]):.4g} over v_max {self._v_max[i]:.4g}"
+            )
+            warnings.warn(
+                f"the env's reset state lies outside the shielded joints' limits (joint {self.robot.names[i]!r}: "
+                f"{where}): no guarantee holds until the joints are back inside (the shield brakes toward the "
+                "range; counted as non-viable and in tally['starts_outside']); start_inside=True moves the env's "
+                "initial pose inside",
+                stacklevel=3,
+            )
+        return out
 
     # ---- the decision ------------------------------------------------------------------------------
     def _decider(self, n_frames: int):
@@ -389,12 +440,18 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
     # ---- Gymnasium interface -----------------------------------------------------------------------
     def reset(self, *, seed=None, options=None):
         """``env.reset``; zeroes ``a_prev``; re-reads the actuators' values from the model (``CActuation.refresh``: a
-        domain randomisation that changed the model before this reset)."""
+        domain randomisation that changed the model before this reset). ``info["start_violation"]``: ``{"position",
+        "velocity"}``, the reset state's excess over the shielded joints' limits (0.0 inside; outside, no guarantee
+        holds until the joints are back inside: warned once, counted in ``tally["starts_outside"]``;
+        ``start_inside=True`` moves the env's initial pose inside)."""
         self.a_prev = np.zeros(self._n, np.float32)
         self._records = []
-        out = self.env.reset(seed=seed, options=options)
+        obs, info = self.env.reset(seed=seed, options=options)
         self.actuation.refresh()
-        return out
+        info = dict(info)
+        info["start_violation"] = start = self._start_violation()
+        self.tally["starts_outside"] += start["position"] > 0.0 or start["velocity"] > 0.0
+        return obs, info
 
     def step(self, action):
         """``env.step(action)`` with ``info["violation"]`` and ``info["shield"]`` added (module docstring).

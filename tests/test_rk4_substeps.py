@@ -6,6 +6,8 @@ test fails on the code before (no retake: the first stage's contact correction o
 
 import jaxlimits.envs  # noqa: F401
 
+import warnings
+
 import gymnasium
 import mujoco
 import numpy as np
@@ -15,7 +17,6 @@ from jaxlimits.envs import actuation
 from jaxlimits.envs.actuation import CActuation
 from jaxlimits.envs.gym import JointLimitShieldWrapper
 from jaxlimits.envs.robot import Robot, _condition_11_cap
-from jaxlimits.training.campaign_gym import viable_start
 
 # a slide joint with a spring and a damper fast against the 10 ms substep (rate 100 /s), no contact
 SPRING = """<mujoco><option timestep="0.01" gravity="0 0 0" integrator="RK4"/>
@@ -118,10 +119,9 @@ def test_the_torque_derived_a_max_meets_condition_11():
 
 
 def _ant_campaign(steps: int):
-    """Shielded Ant-v5 from starts inside its joint ranges (``viable_start``: its own reset puts the ankles 0.52 rad
+    """Shielded Ant-v5 from starts inside its joint ranges (``start_inside``: its own reset puts the ankles 0.52 rad
     outside them, outside any guarantee), bang-bang, random and pressing policies; counts over every substep."""
-    env = JointLimitShieldWrapper(gymnasium.make("Ant-v5"), v_max=3.0)
-    viable_start(env)
+    env = JointLimitShieldWrapper(gymnasium.make("Ant-v5"), v_max=3.0, start_inside=True)
     env.reset(seed=0)
     env.action_space.seed(0)
     pos = vel = corrected = sat = 0
@@ -153,3 +153,35 @@ def test_shielded_ant_keeps_its_limits(monkeypatch):
     monkeypatch.setattr(actuation, "RK4_PASSES", 0)
     pos0, vel0, _, _ = _ant_campaign(600)
     assert pos0 + vel0 > 0
+
+
+def _reset_warnings(caught) -> list:
+    return [w for w in caught if "reset state lies outside" in str(w.message)]
+
+
+def test_a_reset_outside_the_ranges_is_warned_counted_and_start_inside_starts_inside():
+    """Gymnasium's Ant resets its ankles ~0.5 rad outside their ranges: the wrapper warns (once per wrapper), reports
+    the excess in ``info["start_violation"]`` and counts the reset; the first step from there throws the ankles back
+    (MuJoCo's limit rows) at ~8-10 rad/s over ``v_max``, which no command prevents. ``start_inside=True`` moves the
+    initial pose inside: no warning, no excess, and the same first step violates nothing."""
+    env = JointLimitShieldWrapper(gymnasium.make("Ant-v5"), v_max=3.0)
+    with pytest.warns(UserWarning, match="reset state lies outside the shielded joints' limits .*'ankle_"):
+        _, info = env.reset(seed=0)
+    assert info["start_violation"]["position"] > 0.4 and info["start_violation"]["velocity"] == 0.0
+    assert env.step(env.action_space.high)[4]["violation"]["velocity"] > 1.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env.reset(seed=1)
+    assert not _reset_warnings(caught) and env.tally["starts_outside"] == 2
+
+    inside = JointLimitShieldWrapper(gymnasium.make("Ant-v5"), v_max=3.0, start_inside=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for seed in range(3):
+            _, info = inside.reset(seed=seed)
+            assert info["start_violation"] == {"position": 0.0, "velocity": 0.0}
+            first = inside.step(inside.action_space.high)[4]["violation"]
+            assert first == {"position": 0.0, "velocity": 0.0, "torque": 0.0}
+    assert not _reset_warnings(caught) and inside.tally["starts_outside"] == 0
+    env.close()
+    inside.close()

@@ -3,7 +3,7 @@
 ``GYM_TARGETS`` (in ``campaign.TARGETS`` too, so ``jaxlimits campaign --targets "gym Reacher-v5"`` runs them):
 Gymnasium's ``Reacher-v5`` (RK4, an unlimited joint), ``Pusher-v5`` (Euler, the arm on a table) and the
 locomotion envs ``Ant-v5``, ``Hopper-v5``, ``Walker2d-v5`` (RK4, feet on the floor; started inside their joint
-ranges, ``viable_start``, at ``v_max`` 3 rad/s) shielded
+ranges, the wrapper's ``start_inside``, at ``v_max`` 3 rad/s) shielded
 (``viability``) and unshielded (``none``: the same wrapper, only its NaN guard), with the ``v_max`` of
 ``tests/test_gym_shield.py`` and ``benchmarks/bench_gym_shield.py`` (Reacher 4 rad/s, Pusher 2 rad/s) and a
 ``NonFiniteActionGuardWrapper`` outside (as ``NonFiniteActionGuard`` is for the Brax targets: a NaN action never
@@ -176,25 +176,11 @@ class GymTarget:
         return rows
 
 
-def viable_start(shielded) -> None:
-    """Move the initial pose of ``shielded`` (a ``JointLimitShieldWrapper``) inside its limits: every limited
-    shielded joint's ``init_qpos`` clipped to its range shrunk by the env's reset noise (``_reset_noise_scale``,
-    uniform about ``init_qpos`` in Gymnasium's locomotion envs) and 1 %. Gymnasium's Ant starts its ankles at 0,
-    0.52 rad outside their range, Hopper and Walker2d their hips and knees at their upper limit 0 (plus noise):
-    states outside any guarantee."""
-    base, robot = shielded.unwrapped, shielded.robot
-    noise = float(getattr(base, "_reset_noise_scale", 0.0))
-    lo, hi = np.asarray(robot.limits.q_min, float), np.asarray(robot.limits.q_max, float)
-    pad = np.minimum(noise + 0.01 * (hi - lo), 0.5 * (hi - lo))
-    q0 = base.init_qpos[robot.qpos_adr]
-    base.init_qpos[robot.qpos_adr] = np.where(robot.limited, np.clip(q0, lo + pad, hi - pad), q0)
-
-
 def gym_env(env_id: str, start_inside: bool = False, **shield_kwargs):
     """``make(shield, max_episode_steps=None)`` for ``GymTarget``: ``gymnasium.make(env_id)`` (its registered
     ``TimeLimit`` unless ``max_episode_steps`` is given) under ``JointLimitShieldWrapper(method=shield,
-    **shield_kwargs)``, under a ``NonFiniteActionGuardWrapper``; ``start_inside``: ``viable_start`` (an env whose
-    own reset starts outside the joint ranges)."""
+    **shield_kwargs)``, under a ``NonFiniteActionGuardWrapper``; ``start_inside``: the wrapper's (an env whose own
+    reset starts outside the joint ranges)."""
 
     def make(shield: str, max_episode_steps: int | None = None):
         import gymnasium
@@ -205,9 +191,7 @@ def gym_env(env_id: str, start_inside: bool = False, **shield_kwargs):
         env = gymnasium.make(env_id, max_episode_steps=max_episode_steps)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # Pusher: the torque-derived a_max's quantile warning
-            shielded = JointLimitShieldWrapper(env, method=shield, **shield_kwargs)
-        if start_inside:
-            viable_start(shielded)
+            shielded = JointLimitShieldWrapper(env, method=shield, start_inside=start_inside, **shield_kwargs)
         return NonFiniteActionGuardWrapper(shielded)
 
     return make
