@@ -194,6 +194,10 @@ class JointLimitShield(Wrapper):
         the actuators the torque that holds it at their edge (``actuation`` module docstring; a second
         constraint solve per substep, warm-started: +~30 % of the pusher's step at batch 256); measured in
         ``shield/contact_corrected``.
+      start_inside: move the env's initial pose (``sys.init_q``, which Brax's resets add their noise to) inside the
+        shielded joints' ranges shrunk by its reset noise (``_reset_noise_scale``, 0 where the env has none) and 1 %
+        (``Robot.pose_inside``): Brax's ``pusher`` starts its elbow and wrist flex at their upper limits, ``hopper``
+        and ``walker2d`` their hips and knees, states outside any guarantee (counted as non-viable otherwise).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``.
@@ -210,6 +214,7 @@ class JointLimitShield(Wrapper):
         gradient: str = "exact",
         torque_limits: bool = True,
         correct_contacts: bool = True,
+        start_inside: bool = False,
         **robot_kwargs,
     ):
         super().__init__(env)
@@ -232,6 +237,10 @@ class JointLimitShield(Wrapper):
         self.n_frames = int(base._n_frames)
         robot_kwargs.setdefault("control_dt", float(base.sys.opt.timestep) * self.n_frames)
         self.robot = Robot.from_model(_mj_model_of(base.sys), joints, v_max, a_max, j_max, **robot_kwargs)
+        if start_inside:  # before the actuation reads base.sys (MjxActuation.with_system: the System given)
+            init_q = base.sys.init_q
+            inside = self.robot.pose_inside(np.asarray(init_q), getattr(base, "_reset_noise_scale", 0.0))
+            base.sys = base.sys.replace(init_q=jnp.asarray(inside, init_q.dtype))
         # MJX computes in float32: the limits keep clear of the servos' ctrl rounding (joint_shield's docstring)
         self.decide = SafeAcceleration(self.robot, self.n_frames, method, gradient, realisation_margin=True)
         self.actuation = MjxActuation(self.robot, base.sys)

@@ -263,14 +263,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         """``start_inside``: every limited shielded joint's ``init_qpos`` (the pose ``MujocoEnv.reset_model`` adds its
         noise to) clipped into its range shrunk by the env's reset noise (``_reset_noise_scale``, uniform about
         ``init_qpos`` in Gymnasium's locomotion envs; 0 where the env has none) and 1 % of the range."""
-        base, rob = self._base, self.robot
+        base = self._base
         if not hasattr(base, "init_qpos"):
             raise TypeError(f"start_inside=True moves the env's init_qpos; {type(base).__name__} has none")
-        noise = float(getattr(base, "_reset_noise_scale", 0.0))
-        lo, hi = np.asarray(rob.limits.q_min, float), np.asarray(rob.limits.q_max, float)
-        pad = np.minimum(noise + 0.01 * (hi - lo), 0.5 * (hi - lo))
-        q0 = base.init_qpos[rob.qpos_adr]
-        base.init_qpos[rob.qpos_adr] = np.where(rob.limited, np.clip(q0, lo + pad, hi - pad), q0)
+        base.init_qpos[:] = self.robot.pose_inside(base.init_qpos, getattr(base, "_reset_noise_scale", 0.0))
 
     def _start_violation(self) -> dict:
         """The reset state's excess over the model's limits: ``{"position", "velocity"}`` [rad or m, rad/s or m/s]

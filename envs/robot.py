@@ -425,6 +425,18 @@ class Robot:
         q_max = np.where(self.limited, lim.q_max, R)
         return q * self.limited.astype(np.float32), lim.replace(q_min=q_min, q_max=q_max)
 
+    def pose_inside(self, qpos0, noise: float = 0.0) -> np.ndarray:
+        """A copy of the initial pose ``qpos0`` ``(nq,)`` with every limited shielded joint clipped into its range
+        shrunk by ``noise`` [rad or m] (an env's reset noise about its initial pose, uniform) and 1 % of the range
+        (the shrink at most half the range): a pose its reset cannot leave the ranges from (the wrappers'
+        ``start_inside``). The other coordinates are unchanged."""
+        out = np.array(qpos0, dtype=np.float64)
+        lo, hi = np.asarray(self.limits.q_min, float), np.asarray(self.limits.q_max, float)
+        pad = np.minimum(float(noise) + 0.01 * (hi - lo), 0.5 * (hi - lo))
+        q0 = out[self.qpos_adr]
+        out[self.qpos_adr] = np.where(self.limited, np.clip(q0, lo + pad, hi - pad), q0)
+        return out
+
 
 _READ_CACHE = LruCache(32)  # (model bytes' digest, arguments) -> (Robot, warnings), Robot.from_model
 

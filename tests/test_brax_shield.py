@@ -313,3 +313,24 @@ def test_a_domain_randomisation_cannot_pass_the_projects_own_arm_shield_by():
         env.step(states, jnp.zeros((2, arm.action_size)))
     alone = make_planar_reach()
     alone.step(alone.reset(jax.random.PRNGKey(0)), jnp.zeros(alone.action_size))  # no wrapper: no check
+
+
+def test_start_inside_moves_the_initial_pose_inside_the_ranges():
+    """Brax ``pusher`` starts its elbow and wrist flex at their upper limit 0 (its reset adds no noise to the arm),
+    a state outside any guarantee; ``start_inside=True`` moves ``sys.init_q`` inside by 1 % of each range, so every
+    reset starts strictly inside (the other coordinates, the object's and goal's, unchanged)."""
+    keys = jax.random.split(jax.random.PRNGKey(0), 16)
+    plain = _shield_pusher(_pusher())
+    moved = _shield_pusher(_pusher(), start_inside=True)
+    r = moved.robot
+    lo, hi = np.asarray(r.limits.q_min), np.asarray(r.limits.q_max)
+    q_plain = np.asarray(jax.jit(jax.vmap(plain.reset))(keys).pipeline_state.qpos)
+    q_moved = np.asarray(jax.jit(jax.vmap(moved.reset))(keys).pipeline_state.qpos)
+    at_limit = (q_plain[:, r.qpos_adr] >= hi) | (q_plain[:, r.qpos_adr] <= lo)
+    assert at_limit.any(axis=0).sum() >= 2  # elbow and wrist flex
+    assert np.all((q_moved[:, r.qpos_adr] > lo) & (q_moved[:, r.qpos_adr] < hi))
+    others = np.setdiff1d(np.arange(q_plain.shape[1]), r.qpos_adr)
+    np.testing.assert_array_equal(q_moved[:, others], q_plain[:, others])
+    pad = 0.01 * (hi - lo)
+    init = np.asarray(moved.unwrapped.sys.init_q)[r.qpos_adr]
+    assert np.all(init >= lo + pad * (1 - 1e-6)) and np.all(init <= hi - pad * (1 - 1e-6))
