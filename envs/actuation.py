@@ -253,7 +253,7 @@ class MjxActuation:
             robot.ctrl_range.astype(f32),
             robot.force_range.astype(f32),
         )
-        self._damping = (robot.timestep * robot.implicit_damping).astype(f32)
+        self._damping = (robot.timestep * np.asarray(_implicit_damping(sys, sys, np, "mjx"))).astype(f32)
         self._stiff = (0.5 * robot.timestep * robot.rk4_stiffness).astype(f32)
         self._act = np.asarray(robot.actuator_ids)
         self._other_rows = other_rows_on_trees(sys, robot)
@@ -282,7 +282,7 @@ class MjxActuation:
             jnp, self._structure, sys, self.robot.actuator_ids, jnp.float32
         )
         h = self.robot.timestep
-        new._damping = (h * _implicit_damping(self._structure, sys, jnp)).astype(jnp.float32)
+        new._damping = (h * _implicit_damping(self._structure, sys, jnp, "mjx")).astype(jnp.float32)
         new._stiff = (0.5 * h * _rk4_stiffness(self._structure, sys, jnp)).astype(jnp.float32)
         return new
 
@@ -300,7 +300,7 @@ class MjxActuation:
         d = mjx_stages.sensor_vel(sys, d)
         d = mjx_stages.fwd_actuation(sys, d)
         d = mjx_stages.fwd_acceleration(sys, d)
-        M_eff = mjx_stages.full_m(sys, d) + jnp.diag(jnp.asarray(self._damping, d.qvel.dtype))
+        M_eff = mjx_stages.full_m(sys, d) + jnp.asarray(self._damping, d.qvel.dtype)
         dofs = self._arrays[0]
         f_env = d.qfrc_smooth
         f_other = (
@@ -399,7 +399,6 @@ class CActuation:
         self._other_rows = other_rows_on_trees(model, robot)
         self._passes = MJX_CORRECTION_PASSES if robot.coupled else 1  # as MJX's (Euler, implicitfast)
         self._M = np.zeros((model.nv, model.nv))
-        self._M_diag = np.einsum("ii->i", self._M)  # a writable view of the diagonal (no fancy-index copy)
         self._zero_n = np.zeros(robot.n)
         self._zero_n.flags.writeable = False
         self._act = as_slice(robot.actuator_ids)
@@ -434,7 +433,7 @@ class CActuation:
         mujoco.mj_fwdAcceleration(m, d)
         mujoco.mj_fullM(m, d, self._M)
         M_eff = self._M
-        self._M_diag += self._damping
+        M_eff += self._damping
         f_env = d.qfrc_smooth
         f_other = f_env.copy()
         f_other[self._dofs] -= shielded_torque(np, self._arrays, d.actuator_force[self._act])
@@ -548,7 +547,7 @@ class CActuation:
                 G = contact_response(np, self._dofs, rows[0], M_eff, rows[1], rows[2])[0]
             elif G is None and d.ncon and self._rows_touch_trees(d):  # a contact began within the substep
                 M_end = self._full_m(d)
-                M_eff_end = M_end + np.diag(self._damping)
+                M_eff_end = M_end + self._damping
                 G = contact_response(np, self._dofs, M_end, M_eff_end, self._efc_jacobian(d), self._efc_d_active(d))[0]
             elif G is None:  # none: the smooth response
                 G = sub_block(np.linalg.inv(M_eff), self._dofs, self._dofs)

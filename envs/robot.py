@@ -170,10 +170,14 @@ class Robot:
         worst sampled state (what ``_braking_capacity`` used; informative).
       integrator: ``"semi_implicit"`` (Euler, implicitfast) or ``"zoh"`` (RK4), for ``jl.acc_bounds``.
       timestep: the physics substep ``h`` [s].
-      implicit_damping: ``(nv,)`` the diagonal ``D`` the integrator treats implicitly: it solves
-        ``(M + h D) qacc = qfrc`` (Euler: ``dof_damping`` unless ``eulerdamp`` is disabled;
-        implicitfast: ``dof_damping`` plus ``gear^2 kv`` of every actuator with a velocity bias;
-        RK4: half of both, the first-order effect of damping over RK4's stages with ``ctrl`` held).
+      implicit_damping: ``(nv, nv)`` the damping ``D`` the integrator treats implicitly: it solves
+        ``(M + h D) qacc = qfrc`` (Euler: ``diag(dof_damping)`` unless ``eulerdamp`` is disabled;
+        implicitfast: that plus ``kv m m^T`` of every actuator with a velocity bias, ``m`` its moment arm
+        (``gear`` on its joint, or ``gear`` times a fixed tendon's coefficients: a gripper's servo couples its
+        fingers), plus ``d c c^T`` of every fixed tendon with damping ``d``, kept on ``M``'s sparsity as MuJoCo keeps
+        them (``_chain_mask``); RK4: half of the joints' and the servos' part, the first-order effect of damping over
+        RK4's stages with ``ctrl`` held). Spatial tendons (a moment arm that changes with the pose) are refused
+        there.
       coupled: whether a shielded dof shares a kinematic chain with an unshielded one (then the
         actuation solves for the unshielded accelerations too).
       a_max_source: ``"argument"``, ``"numeric"`` or ``"torque"``.
@@ -564,8 +568,25 @@ def _on_dofs(xp, nv: int, dofs, values):
     return xp.zeros(nv, values.dtype).at[np.asarray(dofs, np.intp)].add(values)
 
 
-def _implicit_damping(mjm, values=None, xp=np):
-    """``Robot.implicit_damping`` ``(nv,)``. The integrator, flags and actuator types are read from ``mjm``
+def _fixed_tendon_coefficients(mjm, tendon: int, what) -> np.ndarray:
+    """``(nv,)`` the constant Jacobian of fixed tendon ``tendon`` (its joints' coefficients on their dofs); a spatial
+    tendon (its Jacobian changes with the pose) is refused, naming ``what()`` uses it (a ``mujoco.MjModel``'s names)."""
+    adr, num = int(mjm.tendon_adr[tendon]), int(mjm.tendon_num[tendon])
+    c = np.zeros(int(mjm.nv))
+    for w in range(adr, adr + num):
+        if int(mjm.wrap_type[w]) != int(mujoco.mjtWrap.mjWRAP_JOINT):
+            raise ValueError(
+                f"{what()} acts through the spatial tendon {_name(mjm, mujoco.mjtObj.mjOBJ_TENDON, tendon)!r}: "
+                "its implicit damping (a moment arm that changes with the pose) is not supported; fixed tendons are"
+            )
+        c[int(mjm.jnt_dofadr[int(mjm.wrap_objid[w])])] += float(mjm.wrap_prm[w])
+    return c
+
+
+def _implicit_damping(mjm, values=None, xp=np, engine: str = "c"):
+    """``Robot.implicit_damping`` ``(nv, nv)`` for C MuJoCo (``engine="c"``), or for MJX (``"mjx"``: its implicitfast
+    keeps the whole derivative, not ``M``'s sparsity; they differ only where a tendon couples two dofs of different
+    branches, a gripper's fingers). The integrator, flags and actuator types are read from ``mjm``
     (``mujoco.MjModel`` or ``mjx.Model``), the damping and servo gains from ``values`` (default ``mjm``; e.g. a
     Brax System a domain randomisation changed, with ``xp = jnp``)."""
     values = mjm if values is None else values
@@ -579,14 +600,18 @@ def _implicit_damping(mjm, values=None, xp=np):
         # D h a / 2 on average (first order): compensated here, the rest is second order (measured)
         joint, servo = 0.5 * damper, 0.5
     elif integ == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST):
-        if damper and mjm.ntendon and np.any(np.asarray(mjm.tendon_damping) != 0):
-            raise ValueError("implicitfast with tendon damping is not supported (its derivative couples dofs)")
         joint, servo = float(damper), 1.0
     else:
         joint, servo = 0.0, 0.0
-    D = xp.zeros(int(mjm.nv)) + joint * xp.asarray(values.dof_damping)
+    D = xp.diag(joint * xp.asarray(values.dof_damping))
+    if integ == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST) and damper:
+        for t in np.flatnonzero(np.asarray(mjm.tendon_damping) != 0):  # which tendons: structure
+            c = _fixed_tendon_coefficients(mjm, int(t), lambda: "tendon damping under implicitfast")
+            D = D + xp.asarray(values.tendon_damping)[t] * np.outer(c, c)
     if servo:
         D = D + servo * _servo_damping(mjm, values, xp)
+    if engine == "c" and integ == int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST):
+        D = xp.where(_chain_mask(mjm), D, 0.0)  # C MuJoCo's implicit step keeps M's sparsity of the derivative
     return D
 
 
@@ -597,21 +622,34 @@ def _affine_joint_actuators(mjm, column: int) -> np.ndarray:
 
 
 def _servo_damping(mjm, values=None, xp=np):
-    """``gear^2 kv`` on each dof driven by an actuator with a velocity bias (``biasprm[2] = -kv``), ``(nv,)``.
-    Which actuators: from ``mjm``; their gear and kv: from ``values`` (default ``mjm``)."""
+    """``sum kv m m^T`` ``(nv, nv)`` over the actuators with a velocity bias (``biasprm[2] = -kv``), ``m`` the moment
+    arm: ``gear`` on a joint's dof, or ``gear c`` through a fixed tendon of coefficients ``c``
+    (``_fixed_tendon_coefficients``). Which actuators and the tendons' coefficients: from ``mjm``; their gear and kv:
+    from ``values`` (default ``mjm``). Other transmissions are refused, naming the actuator."""
     values = mjm if values is None else values
+    nv = int(mjm.nv)
     if int(mjm.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_ACTUATION):
-        return xp.zeros(int(mjm.nv))
+        return xp.zeros((nv, nv))
     acts = _affine_joint_actuators(mjm, 2)
-    for a in acts:
-        if int(mjm.actuator_trntype[a]) != _TRN_JOINT:
+    arms = np.zeros((len(acts), nv))  # the moment arm per unit gear (structure)
+    for i, a in enumerate(acts):
+        trn, target = int(mjm.actuator_trntype[a]), int(mjm.actuator_trnid[a, 0])
+
+        def what(a=a):
+            return f"actuator {_name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a)!r}"
+
+        if trn == _TRN_JOINT:
+            arms[i, int(mjm.jnt_dofadr[target])] = 1.0
+        elif trn == int(mujoco.mjtTrn.mjTRN_TENDON):
+            arms[i] = _fixed_tendon_coefficients(mjm, target, lambda: f"{what()} (a velocity bias)")
+        else:
             raise ValueError(
-                f"actuator {_name(mjm, mujoco.mjtObj.mjOBJ_ACTUATOR, a)!r}: a velocity bias through a non-joint "
-                "transmission is not supported"
+                f"{what()}: a velocity bias through a transmission other than a joint or a fixed tendon is "
+                "not supported"
             )
-    dofs = np.asarray(mjm.jnt_dofadr)[np.asarray(mjm.actuator_trnid)[acts, 0]]
     g = xp.asarray(values.actuator_gear)[acts, 0]
-    return _on_dofs(xp, int(mjm.nv), dofs, -(g * g * xp.asarray(values.actuator_biasprm)[acts, 2]))
+    kv_g2 = -(g * g * xp.asarray(values.actuator_biasprm)[acts, 2])
+    return xp.einsum("a,ai,aj->ij", kv_g2, arms, arms)
 
 
 def _rk4_stiffness(mjm, values=None, xp=np):
@@ -632,20 +670,32 @@ def _rk4_stiffness(mjm, values=None, xp=np):
     return K + _on_dofs(xp, int(mjm.nv), dofs, -(g * g * xp.asarray(values.actuator_biasprm)[acts, 1]))
 
 
+def _ancestors(mjm, d: int) -> list:
+    """The dofs above dof ``d`` in its kinematic chain (``dof_parentid``, nearest first)."""
+    out = []
+    d = int(mjm.dof_parentid[d])
+    while d >= 0:
+        out.append(d)
+        d = int(mjm.dof_parentid[d])
+    return out
+
+
+def _chain_mask(mjm) -> np.ndarray:
+    """``(nv, nv)`` bool, ``M``'s sparsity: dofs ``i``, ``j`` where one is the other or above it in its chain. MuJoCo's
+    implicit integrators keep only these entries of the damping's derivative (two fingers on one hand, siblings, are
+    not coupled there even when one tendon drives both: measured, ``qDeriv``)."""
+    mask = np.eye(int(mjm.nv), dtype=bool)
+    for d in range(int(mjm.nv)):
+        up = _ancestors(mjm, d)
+        mask[d, up] = mask[up, d] = True
+    return mask
+
+
 def _coupled(mjm: mujoco.MjModel, dofs: np.ndarray) -> bool:
     """Whether a shielded dof and an unshielded one share a chain (then ``M`` couples them)."""
     shielded = set(int(d) for d in dofs)
-
-    def ancestors(d):
-        out = []
-        d = int(mjm.dof_parentid[d])
-        while d >= 0:
-            out.append(d)
-            d = int(mjm.dof_parentid[d])
-        return out
-
     for d in range(mjm.nv):
-        chain = set(ancestors(d))
+        chain = set(_ancestors(mjm, d))
         if d in shielded and chain - shielded:
             return True
         if d not in shielded and chain & shielded:
@@ -716,7 +766,7 @@ def _braking_capacity(mjm, robot: dict, qs, vs, quantile: float, control_dt: flo
         mujoco.mj_fwdPosition(mjm, d)
         mujoco.mj_fwdVelocity(mjm, d)
         mujoco.mj_fullM(mjm, d, full)
-        Me = full + robot["timestep"] * np.diag(robot["implicit_damping"])
+        Me = full + robot["timestep"] * robot["implicit_damping"]
         M[i], f_s = joint_dynamics(np, Me, d.qfrc_passive - d.qfrc_bias, dofs, None, False)  # the base held
         h[i] = -f_s
         lo[i], hi[i] = shrink(*torque_range(np, arrays, qs[i], vs[i], control_dt, a_guess))

@@ -122,7 +122,7 @@ def test_options_a_brax_env_sets_on_its_system_reach_the_robot_and_the_substeps(
     pusher = _shield_pusher(_pusher())
     assert int(pusher.actuation.sys.opt.iterations) == int(pusher.env.sys.opt.iterations) == 20
     assert pusher.actuation._passes == 1
-    assert np.all(pusher.robot.implicit_damping[pusher.robot.dof_adr] > 0)  # Euler's implicit damping, on
+    assert np.all(np.diagonal(pusher.robot.implicit_damping)[pusher.robot.dof_adr] > 0)  # Euler's implicit damping, on
     # masses changed on the System (a domain randomisation) reach the model the robot is built from; unchanged
     # fields keep the MjModel's float64 values
     reacher = brax.envs.get_environment("reacher", backend="mjx")
@@ -280,9 +280,10 @@ def test_the_arrays_read_from_a_system_are_the_robots_and_follow_its_changes(int
     assert same is not act and act.with_system(env.sys) is act
     for mine, read in zip(act._arrays, same._arrays):
         np.testing.assert_array_equal(np.asarray(read), mine)
-    for mine, read in ((act._damping, same._damping), (act._stiff, same._stiff)):
+    nv = env.sys.nv
+    for mine, read, shape in ((act._damping, same._damping, (nv, nv)), (act._stiff, same._stiff, (nv,))):
         np.testing.assert_allclose(np.asarray(read), mine, rtol=1e-6)
-        assert mine.shape == (env.sys.nv,)
+        assert mine.shape == shape
     assert np.any(act._damping > 0) and (integrator != "RK4" or np.any(act._stiff > 0))
     doubled = act.with_system(
         env.sys.tree_replace({"actuator_gainprm": 2 * env.sys.actuator_gainprm, "dof_damping": 2 * env.sys.dof_damping})

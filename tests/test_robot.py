@@ -334,3 +334,125 @@ def test_mjx_agrees_under_a_joint_force_clamp():
     np.testing.assert_allclose(f, f_c, rtol=1e-4, atol=1e-4)
     assert not sat.any()
     np.testing.assert_allclose(r, a, atol=1e-3)
+
+
+GRIPPER_ARM = """
+<mujoco><option timestep="0.002" integrator="{integrator}"/>
+  <worldbody>
+    <body name="l1"><joint name="j1" axis="0 1 0" range="-1 1" damping="0.5"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
+      <body name="l2" pos="0.3 0 0"><joint name="j2" axis="0 0 1" range="-2 2"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="0.5"/>
+        <body name="left" pos="0.3 0.05 0"><joint name="f1" type="slide" axis="0 1 0" range="-0.04 0.04"/>
+          <geom size="0.02" mass="0.3"/></body>
+        <body name="right" pos="0.3 -0.05 0"><joint name="f2" type="slide" axis="0 -1 0" range="-0.04 0.04"/>
+          <geom size="0.02" mass="0.3"/></body>
+      </body>
+    </body>
+  </worldbody>
+  <tendon>
+    <fixed name="split"><joint joint="f1" coef="0.5"/><joint joint="f2" coef="0.5"/></fixed>
+    <fixed name="squeeze" damping="{tendon_damping}"><joint joint="f1" coef="1"/><joint joint="f2" coef="-1"/></fixed>
+  </tendon>
+  <actuator>
+    <motor joint="j1" gear="50" ctrlrange="-1 1"/>
+    <position joint="j2" kp="200" kv="4" ctrlrange="-2 2" forcerange="-50 50"/>
+    <general tendon="split" biastype="affine" gainprm="400" biasprm="0 -400 -60" ctrlrange="-0.04 0.04"/>
+  </actuator>
+</mujoco>"""
+
+
+@pytest.mark.parametrize("integrator", ["Euler", "implicitfast"])
+def test_a_grippers_fixed_tendon_servo_and_tendon_damping_enter_the_implicit_damping(integrator):
+    """Menagerie's grippers (xArm7, Panda's hand, Robotiq) drive their fingers through a fixed tendon with a servo's
+    velocity bias; implicitfast integrates it, and a fixed tendon's damping, implicitly: ``kv m m^T`` and
+    ``d c c^T``, which couple the fingers' dofs, and through ``M`` the arm's realised acceleration (such models were
+    refused). The shielded arm's acceleration is realised exactly with the gripper's servo commanded anywhere; with
+    those terms left out it is not (so the check can fail)."""
+    m = mujoco.MjModel.from_xml_string(GRIPPER_ARM.format(integrator=integrator, tendon_damping=3.0))
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    r = Robot.from_model(m, v_max=2.0)
+    assert r.names == ("j1", "j2")
+    f1, f2 = int(m.jnt_dofadr[m.joint("f1").id]), int(m.jnt_dofadr[m.joint("f2").id])
+    D = r.implicit_damping
+    if integrator == "implicitfast":
+        # the servo's 60 * 0.5 * 0.5 on the split plus the squeeze's damping 3 * 1 * 1; between the fingers (siblings:
+        # outside M's sparsity) MuJoCo keeps nothing, and neither does the shield
+        np.testing.assert_allclose(D[f1, f1], 60 * 0.25 + 3.0)
+        assert D[f1, f2] == 0.0
+    else:  # Euler: the joints' own damping only
+        assert D[f1, f2] == 0.0 and D[f1, f1] == 0.0
+
+    def worst_error(act):
+        d = mujoco.MjData(m)
+        rng = np.random.default_rng(0)
+        worst = 0.0
+        for _ in range(60):
+            ctrl = np.array([0.0, 0.0, rng.uniform(-0.04, 0.04)])
+            a = rng.uniform(-0.3, 0.3, r.n) * r.limits.a_max
+            v0 = d.qvel[r.dof_adr].copy()
+            _, M, f = act.smooth_stage(d, ctrl)
+            act.finish_substep(d, M, f, a)
+            worst = max(worst, np.max(np.abs((d.qvel[r.dof_adr] - v0) / m.opt.timestep - a)))
+        return worst
+
+    assert worst_error(CActuation(r, m)) < 1e-9
+    if integrator == "implicitfast":
+        act = CActuation(r, m)
+        act._damping[[f1, f2], [f1, f2]] = 0.0  # the gripper's servo and tendon damping left out (as before)
+        assert worst_error(act) > 1e-6
+
+
+def test_mjx_keeps_the_whole_damping_derivative_and_its_actuation_realises_the_acceleration():
+    """MJX's implicitfast keeps the whole derivative (the fingers' coupling through the tendons included; C MuJoCo keeps
+    ``M``'s sparsity): ``MjxActuation`` uses MJX's, and realises the decided acceleration (float32)."""
+    import jax
+    from mujoco import mjx
+
+    from jaxlimits.envs.actuation import MjxActuation
+    from jaxlimits.envs.robot import _implicit_damping
+
+    m = mujoco.MjModel.from_xml_string(GRIPPER_ARM.format(integrator="implicitfast", tendon_damping=3.0))
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    r = Robot.from_model(m, v_max=2.0)
+    f1, f2 = int(m.jnt_dofadr[m.joint("f1").id]), int(m.jnt_dofadr[m.joint("f2").id])
+    sysm = mjx.put_model(m)
+    np.testing.assert_allclose(np.asarray(_implicit_damping(sysm, sysm, np, "mjx"))[f1, f2], 60 * 0.25 - 3.0)
+    a = np.array([20.0, -100.0], np.float32)
+    ctrl = np.array([0.0, 0.0, 0.04])
+    d0 = mujoco.MjData(m)
+    d0.qvel[:] = [0.3, -1.5, 2.0, -2.0]  # the fingers sliding the same way: the arm feels their coupling
+
+    def miss(act):
+        @jax.jit
+        @jax.numpy_rank_promotion("allow")  # MJX's own code relies on it
+        def substep(d):
+            dd, M, f = act.smooth_stage(d, ctrl)
+            dn, inv, _ = act.finish_substep(dd, M, f, a)
+            return (dn.qvel - dd.qvel)[np.asarray(r.dof_adr)] / m.opt.timestep, inv.saturated
+
+        realised, sat = jax.device_get(substep(mjx.put_data(m, d0)))
+        assert not sat.any()
+        return float(np.max(np.abs(realised - a)))
+
+    assert miss(MjxActuation(r, sysm)) < 2e-3
+    c_model = MjxActuation(r, sysm)
+    c_model._damping = (m.opt.timestep * r.implicit_damping).astype(np.float32)  # C MuJoCo's sparsity: wrong here
+    assert miss(c_model) > 0.1
+
+
+def test_a_velocity_bias_through_a_spatial_tendon_is_refused_naming_it():
+    xml = GRIPPER_ARM.format(integrator="implicitfast", tendon_damping=0.0).replace(
+        '<fixed name="split"><joint joint="f1" coef="0.5"/><joint joint="f2" coef="0.5"/></fixed>',
+        '<spatial name="split"><site site="s1"/><site site="s2"/></spatial>',
+    )
+    xml = xml.replace(
+        '<geom size="0.02" mass="0.3"/></body>\n        <body name="right"',
+        '<geom size="0.02" mass="0.3"/><site name="s1"/></body>\n        <body name="right"',
+    )
+    xml = xml.replace(
+        '<geom size="0.02" mass="0.3"/></body>\n      </body>',
+        '<geom size="0.02" mass="0.3"/><site name="s2"/></body>\n      </body>',
+    )
+    with pytest.raises(ValueError, match="spatial tendon 'split'"):
+        Robot.from_model(mujoco.MjModel.from_xml_string(xml), v_max=2.0)
