@@ -253,7 +253,7 @@ class MjxActuation:
             robot.ctrl_range.astype(f32),
             robot.force_range.astype(f32),
         )
-        self._damping = (robot.timestep * np.asarray(_implicit_damping(sys, sys, np, "mjx"))).astype(f32)
+        self._damping = (robot.timestep * np.asarray(_implicit_damping(sys, xp=np, engine="mjx"))).astype(f32)
         self._stiff = (0.5 * robot.timestep * robot.rk4_stiffness).astype(f32)
         self._act = np.asarray(robot.actuator_ids)
         self._other_rows = other_rows_on_trees(sys, robot)

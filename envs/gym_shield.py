@@ -268,13 +268,17 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             raise TypeError(f"start_inside=True moves the env's init_qpos; {type(base).__name__} has none")
         base.init_qpos[:] = self.robot.pose_inside(base.init_qpos, getattr(base, "_reset_noise_scale", 0.0))
 
+    def _limit_excess(self, q, v):
+        """``(position, velocity)`` excess over the model's own limits per joint, ``(..., n)`` each [rad or m, rad/s or
+        m/s], negative inside (unlimited joints: ``-inf`` position excess)."""
+        return np.maximum(q - self._q_hi, self._q_lo - q), np.abs(v) - self._v_max
+
     def _start_violation(self) -> dict:
         """The reset state's excess over the model's limits: ``{"position", "velocity"}`` [rad or m, rad/s or m/s]
         of the shielded joints, 0.0 inside; the first one found outside is warned about, once per wrapper."""
         d = self._base.data
         q, v = d.qpos[self._qadr], d.qvel[self._dofs]
-        pos_ex = np.maximum(q - self._q_hi, self._q_lo - q)
-        vel_ex = np.abs(v) - self._v_max
+        pos_ex, vel_ex = self._limit_excess(q, v)
         out = {"position": max(float(pos_ex.max()), 0.0), "velocity": max(float(vel_ex.max()), 0.0)}
         if (out["position"] > 0.0 or out["velocity"] > 0.0) and not self._warned_start:
             self._warned_start = True
@@ -373,8 +377,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         mujoco.mj_rnePostConstraint(m, d)
 
         # reductions over the substeps, once per call
-        pos = max(float(np.maximum(Q - self._q_hi, self._q_lo - Q).max()), 0.0)
-        vel = max(float((np.abs(V[1:]) - self._v_max).max()), 0.0)
+        pos_ex, vel_ex = self._limit_excess(Q, V[1:])
+        pos, vel = max(float(pos_ex.max()), 0.0), max(float(vel_ex.max()), 0.0)
         accel_error = float(np.abs((V[1:] - V[:-1]) / self._h - a_safe).max())
         finite = np.isfinite(a_des)
         if finite.all():
