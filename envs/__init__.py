@@ -17,6 +17,7 @@ _EXPORTS = {
     "make_planar_reach": "jaxlimits.envs.arm",
     "SafetyWrapper": "jaxlimits.envs.safety",
     "JointLimitShield": "jaxlimits.envs.brax_shield",
+    "ImpactPoint": "jaxlimits.envs.impact_point",
     "NonFiniteActionGuard": "jaxlimits.envs.nonfinite_guard",
     "Robot": "jaxlimits.envs.robot",
     "Reach": "jaxlimits.envs.reach",

@@ -308,6 +308,10 @@ class MjxActuation:
         )
         return d, M_eff, f_other
 
+    def mass(self, M_eff):
+        """``(nv, nv)`` the mass matrix ``M`` (armature included) from ``smooth_stage``'s ``M_eff = M + h D``."""
+        return M_eff - jnp.asarray(self._damping, M_eff.dtype)
+
     def asked_acceleration(self, d, M_eff):
         """``a_des`` ``(n,)``: the acceleration the env's ``ctrl`` asks of the shielded joints under the
         integrator, ``M_eff^-1 qfrc_smooth`` (after ``smooth_stage``)."""

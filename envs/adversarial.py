@@ -73,7 +73,12 @@ def shield_rollout(
     Returns a dict: ``env_steps``; per policy ``p`` and in total: ``count/<k>`` (env-steps with
     ``k`` > 0 for ``k`` in position, velocity, torque, saturated, nonfinite, nonviable, disturbance),
     ``max/<k>`` for position, velocity, torque, accel_error, and ``undisturbed/count/position``,
-    ``undisturbed/count/velocity``, ``undisturbed/max/accel_error``.
+    ``undisturbed/count/velocity``, ``undisturbed/max/accel_error``. With an impact point (``impact=``, enforced
+    or measured): ``count/impact_infeasible``; ``count/over_cap`` (steps no contact disturbed whose approach speed
+    exceeds the cap of the step before and its own, ``max(cap_t-1, cap_t)``, by over 1 % + 1 mm/s: the step before's
+    cap bounds its end speed, this step's its own; judged only where both steps met their caps and not on a
+    restart's step); ``count/strikes`` (steps where a contact disturbance begins) and ``max/strike_speed`` [m/s]
+    (the approach speed in such a step), ``count/strike_over_cap`` (those over the cap as above, where judged).
     """
     reset = env.reset if reset is None else reset
     n_act = env.action_size
@@ -88,6 +93,7 @@ def shield_rollout(
         period = jax.random.randint(k_per, (batch, n_act), 5, 60)
         kind = jnp.asarray(kind_np)[:, None]
         step = env.step if batched else jax.vmap(env.step)
+        impact = "shield/impact_speed" in states0.metrics
 
         def body(carry, t):
             states, disturbed, acc = carry
@@ -97,9 +103,26 @@ def shield_rollout(
             a = _action(kind, signs, period, t, jax.random.fold_in(k_roll, t))
             ns = step(states, a)
             m = {k: ns.metrics[f"shield/{k}"] for k in _COUNTED + ("accel_error",)}
+            extra = {}
+            if impact:
+                prev, now = states.metrics, ns.metrics
+                speed, cap = now["shield/impact_speed"], now["shield/impact_cap"]
+                feasible = (prev["shield/impact_infeasible"] == 0) & (now["shield/impact_infeasible"] == 0)
+                judged = (t % episode != 0) & feasible
+                above = judged & (speed > 1.01 * jnp.maximum(prev["shield/impact_cap"], cap) + 1e-3)
+                strike = (m["disturbance"] > 0) & (prev["shield/disturbance"] == 0) & (t % episode != 0)
+                extra = {
+                    "count/impact_infeasible": acc["count/impact_infeasible"] + (now["shield/impact_infeasible"] > 0),
+                    "count/over_cap": acc["count/over_cap"] + (above & (m["disturbance"] == 0)),
+                    "count/strikes": acc["count/strikes"] + strike,
+                    "count/strike_over_cap": acc["count/strike_over_cap"] + (strike & above),
+                    "max/impact_speed": jnp.maximum(acc["max/impact_speed"], speed),
+                    "max/strike_speed": jnp.maximum(acc["max/strike_speed"], jnp.where(strike, speed, 0.0)),
+                }
             disturbed = disturbed | (m["disturbance"] > 0)
             clean = ~disturbed
             acc = {
+                **extra,
                 **{f"count/{k}": acc[f"count/{k}"] + (m[k] > 0) for k in _COUNTED},
                 **{f"max/{k}": jnp.maximum(acc[f"max/{k}"], m[k]) for k in _MAXED},
                 "undisturbed/count/position": acc["undisturbed/count/position"] + (clean & (m["position"] > 0)),
@@ -117,6 +140,9 @@ def shield_rollout(
         acc0.update(
             {"undisturbed/count/position": zi, "undisturbed/count/velocity": zi, "undisturbed/max/accel_error": zf}
         )
+        if impact:
+            acc0.update({k: zi for k in ("count/impact_infeasible", "count/over_cap", "count/strikes")})
+            acc0.update({"count/strike_over_cap": zi, "max/impact_speed": zf, "max/strike_speed": zf})
         (_, _, acc), _ = jax.lax.scan(body, (states0, jnp.zeros((batch,), bool), acc0), jnp.arange(steps))
         return acc
 

@@ -71,9 +71,10 @@ with warnings.catch_warnings():
 from jaxlimits.envs import mjx_stages, nonfinite_guard
 from jaxlimits.internal import batched_like
 from jaxlimits.envs.actuation import MjxActuation
+from jaxlimits.envs.impact_point import ImpactPoint
 from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, Decision, SafeAcceleration
-from jaxlimits.envs.robot import Robot
+from jaxlimits.envs.robot import Robot, sub_block
 
 VIOLATIONS = ("position", "velocity", "torque")
 SHIELD_METRICS = VIOLATIONS + (
@@ -87,6 +88,9 @@ SHIELD_METRICS = VIOLATIONS + (
     "beyond_bounds",
     "contact_corrected",
 )
+# with an impact cap (``impact=``): the cap [m/s], 0/1 where no command inside the bounds and the torques met it,
+# and the impact point's largest approach speed along the normal over the step's substeps [m/s]
+IMPACT_METRICS = ("impact_cap", "impact_infeasible", "impact_speed")
 # fields a Brax env may have changed on its System after loading (read back into the MjModel copy)
 _SYNCED_FIELDS = (
     "actuator_gear",
@@ -198,9 +202,13 @@ class JointLimitShield(Wrapper):
         shielded joints' ranges shrunk by its reset noise (``_reset_noise_scale``, 0 where the env has none) and 1 %
         (``Robot.pose_inside``): Brax's ``pusher`` starts its elbow and wrist flex at their upper limits, ``hopper``
         and ``walker2d`` their hips and knees, states outside any guarantee (counted as non-viable otherwise).
+      impact: ``None`` or an ``ImpactPoint`` (``envs/impact_point.py``): the impact-aware speed cap on that point's
+        approach speed along its normal, one more row of the decision; metrics ``shield/impact_cap``,
+        ``shield/impact_infeasible``, ``shield/impact_speed`` (``IMPACT_METRICS``).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
-    Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``.
+    Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``, ``impact``
+    (``impact_point.ImpactModel`` or ``None``).
     """
 
     def __init__(
@@ -215,9 +223,12 @@ class JointLimitShield(Wrapper):
         torque_limits: bool = True,
         correct_contacts: bool = True,
         start_inside: bool = False,
+        impact: ImpactPoint | None = None,
         **robot_kwargs,
     ):
         super().__init__(env)
+        if impact is not None and not isinstance(impact, ImpactPoint):
+            raise TypeError(f"impact must be None or an ImpactPoint, got {type(impact).__name__}")
         self.torque_limits = bool(torque_limits) and method != "none"
         self.correct_contacts = bool(correct_contacts) and method != "none"
         base = env.unwrapped
@@ -241,8 +252,12 @@ class JointLimitShield(Wrapper):
             init_q = base.sys.init_q
             inside = self.robot.pose_inside(np.asarray(init_q), getattr(base, "_reset_noise_scale", 0.0))
             base.sys = base.sys.replace(init_q=jnp.asarray(inside, init_q.dtype))
+        self.impact = None if impact is None else impact.resolve(_mj_model_of(base.sys), self.robot)
+        self._metric_names = SHIELD_METRICS + (IMPACT_METRICS if self.impact is not None else ())
         # MJX computes in float32: the limits keep clear of the servos' ctrl rounding (joint_shield's docstring)
-        self.decide = SafeAcceleration(self.robot, self.n_frames, method, gradient, realisation_margin=True)
+        self.decide = SafeAcceleration(
+            self.robot, self.n_frames, method, gradient, realisation_margin=True, impact=self.impact
+        )
         self.actuation = MjxActuation(self.robot, base.sys)
         self.method = method
         self._base = base
@@ -285,13 +300,25 @@ class JointLimitShield(Wrapper):
         def decide(d, M, f):
             a_des = jnp.where(nonfinite, jnp.nan, act.asked_acceleration(d, M))  # braking substituted, flagged
             torque = act.torque_model(d, M, f, self.decide.dt) if self.torque_limits else None
-            return self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, torque), a_des
+            terms = None
+            if self.impact is not None:  # the rigid-body mass matrix (no implicit damping) of the shielded chain
+                imp = self.impact
+                terms = (
+                    sub_block(act.mass(M), dofs, dofs),
+                    imp.jacobian(act.sys, d, dofs),
+                    imp.jacobian_rate(act.sys, d, dofs),
+                )
+            return self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, torque, terms), a_des
 
         def record(d_before, d_after, inv, out, a):
             v0, v1 = d_before.qvel[dofs], d_after.qvel[dofs]
             viol = self.decide.violations(d_after.qpos[qadr], v1)
             inside = self.decide.violations(d_before.qpos[qadr], v0)["position"] <= 0
+            extra = {}
+            if self.impact is not None:  # the impact point's approach speed at the substep's start
+                extra["impact_speed"] = self.impact.approach_speed(self.impact.jacobian(act.sys, d_before, dofs), v0)
             return {
+                **extra,
                 **viol,
                 # constraint force on the shielded dofs while they are inside their limits (MuJoCo's limit
                 # constraint is inactive there): a contact (or friction loss, equality) the shield does not model
@@ -319,7 +346,8 @@ class JointLimitShield(Wrapper):
 
         dtype = pipeline_state.qvel.dtype
         vec, flag = jnp.zeros((rob.n,), dtype), jnp.zeros((), bool)
-        dec0 = Decision(vec, vec, vec, jnp.zeros((rob.n,), bool), flag, flag)
+        zero = jnp.zeros((), dtype)
+        dec0 = Decision(vec, vec, vec, jnp.zeros((rob.n,), bool), flag, flag, zero, zero)
         init = batched_like((pipeline_state, dec0, vec), pipeline_state.qpos)  # one batching round under vmap
         (d_end, dec, a_des), recs = jax.lax.scan(substep, init, jnp.arange(self.n_frames))
         a = dec.a_safe
@@ -330,6 +358,10 @@ class JointLimitShield(Wrapper):
         rec["nonviable"] = ~jnp.all(dec.viable)
         rec["torque_conflict"] = dec.conflict
         rec["beyond_bounds"] = SafeAcceleration.beyond_bounds(dec)
+        if self.impact is not None:
+            rec["impact_cap"] = dec.impact_cap
+            # beyond the float32 roundoff of the row (1e-4 of the cap, 1e-5 m/s)
+            rec["impact_infeasible"] = dec.impact_excess > 1e-4 * dec.impact_cap + 1e-5
         self._outputs = (rec, dec, a_des)
         return _brax_state(self._base.sys, d_end)
 
@@ -349,7 +381,7 @@ class JointLimitShield(Wrapper):
         info["shield_a_prev"] = jnp.zeros((n,), jnp.float32)
         info["violation"] = {k: zero for k in VIOLATIONS}
         metrics = dict(state.metrics)
-        metrics.update({f"shield/{k}": zero for k in SHIELD_METRICS})
+        metrics.update({f"shield/{k}": zero for k in self._metric_names})
         return state.replace(info=info, metrics=metrics)
 
     @_mjx_tracing
@@ -367,5 +399,5 @@ class JointLimitShield(Wrapper):
         info["shield_a_prev"] = dec.a_safe.astype(jnp.float32)
         info["violation"] = {k: rec[k].astype(jnp.float32) for k in VIOLATIONS}
         metrics = dict(nstate.metrics)
-        metrics.update({f"shield/{k}": jnp.asarray(rec[k], jnp.float32) for k in SHIELD_METRICS})
+        metrics.update({f"shield/{k}": jnp.asarray(rec[k], jnp.float32) for k in self._metric_names})
         return nstate.replace(info=info, metrics=metrics)

@@ -76,6 +76,7 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
 from jaxlimits.envs.content_cache import LruCache
 from jaxlimits.envs.fork_guard import check_not_forked_from_jax
+from jaxlimits.envs.impact_point import ImpactPoint
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, RK4_MARGIN, RK4_RESTEP, SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
@@ -99,6 +100,8 @@ def _zero_tally() -> dict:
         "beyond_bounds": 0,
         "contact_corrected": 0,
         "starts_outside": 0,
+        "impact_infeasible": 0,
+        "max_impact_speed": 0.0,
         "max_position_excess": 0.0,
         "max_velocity_excess": 0.0,
         "max_torque_excess": 0.0,
@@ -109,32 +112,37 @@ def _zero_tally() -> dict:
     }
 
 
-_SHARED_DECIDERS = LruCache(32)  # (robot fingerprint, method, torque limits, n_frames) -> decider
+_SHARED_DECIDERS = LruCache(32)  # (robot fingerprint, method, torque limits, n_frames, impact) -> decider
 
 
-def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bool):
+def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bool, impact=None):
     """``(SafeAcceleration, compiled)``: the decision for ``robot`` over ``n_frames`` substeps, jitted and compiled
-    ahead of time for float32 ``(n,)`` inputs (``JointLimitShieldWrapper._decider``)."""
-    decide = SafeAcceleration(robot, n_frames, method)
+    ahead of time for float32 ``(n,)`` inputs (``JointLimitShieldWrapper._decider``); ``impact`` an
+    ``impact_point.ImpactModel`` (then three more inputs, ``M`` ``(n, n)``, ``J`` and ``J_rate`` ``(3, n)``, and two
+    more outputs, the cap and the excess)."""
+    decide = SafeAcceleration(robot, n_frames, method, impact=impact)
 
-    def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi):
+    def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi, *impact_terms):
         torque = TorqueModel(M_ss, f_s, tau_lo, tau_hi) if torque_limits else None
-        dec = decide(q, v, a_des, a_prev, torque)
+        dec = decide(q, v, a_des, a_prev, torque, impact_terms or None)
         f32 = jnp.float32
-        return jnp.concatenate(
-            [
-                dec.a_safe.astype(f32),
-                dec.lower.astype(f32),
-                dec.upper.astype(f32),
-                dec.viable.astype(f32),
-                dec.nonfinite.astype(f32)[None],
-                dec.conflict.astype(f32)[None],
-            ]
-        )
+        parts = [
+            dec.a_safe.astype(f32),
+            dec.lower.astype(f32),
+            dec.upper.astype(f32),
+            dec.viable.astype(f32),
+            dec.nonfinite.astype(f32)[None],
+            dec.conflict.astype(f32)[None],
+        ]
+        if impact is not None:
+            parts += [dec.impact_cap.astype(f32)[None], dec.impact_excess.astype(f32)[None]]
+        return jnp.concatenate(parts)
 
     spec = jax.ShapeDtypeStruct((robot.n,), jnp.float32)
     mspec = jax.ShapeDtypeStruct((robot.n, robot.n), jnp.float32)
-    return decide, jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec).compile()
+    jspec = jax.ShapeDtypeStruct((3, robot.n), jnp.float32)
+    extra = () if impact is None else (mspec, jspec, jspec)
+    return decide, jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec, *extra).compile()
 
 
 class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstructorArgs):
@@ -157,10 +165,15 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         reset noise (``_move_start_inside``): Gymnasium's Ant starts its ankles 0.52 rad outside their ranges, Hopper
         and Walker2d their hips and knees at their upper limits plus noise, states no shield can answer for.
         Without it such a start is warned about once and counted (``reset``).
+      impact: ``None`` or an ``ImpactPoint`` (``envs/impact_point.py``): the impact-aware speed cap on that point's
+        approach speed along its normal, one more row of the decision; ``info["shield"]`` gets ``impact_cap``
+        [m/s], ``impact_infeasible`` (no command inside the bounds and the torques met it) and ``impact_speed``
+        (the point's largest approach speed over the step's substeps [m/s]).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes:
-      robot: the ``Robot`` (``n`` shielded joints). actuation: the ``CActuation``.
+      robot: the ``Robot`` (``n`` shielded joints). actuation: the ``CActuation``. impact: the
+        ``impact_point.ImpactModel`` or ``None``.
       decide: the ``SafeAcceleration`` for ``frame_skip`` substeps.
       a_prev: ``(n,)`` float32, the last step's ``a_safe`` (zeros after ``reset``; ``"jerk"`` uses it).
       tally: running totals over the steps since construction (``reset_tally()`` zeroes them): counts
@@ -170,7 +183,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         the largest ``max_position_excess`` [rad or m], ``max_velocity_excess`` [rad/s or m/s],
         ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2],
         and ``beyond_bounds``, ``contact_corrected`` (steps) with their largest values (``max_*``), and
-        ``starts_outside`` (resets whose state lay outside the limits, ``reset``).
+        ``starts_outside`` (resets whose state lay outside the limits, ``reset``); with ``impact``,
+        ``impact_infeasible`` (steps) and ``max_impact_speed`` [m/s].
 
     Raises ``TypeError`` for an env that is not a MuJoCo env, ``ValueError`` (from ``Robot.from_model``
     / ``SafeAcceleration``) naming the joint, actuator or field that is missing or unsupported.
@@ -187,6 +201,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         torque_limits: bool = True,
         correct_contacts: bool = True,
         start_inside: bool = False,
+        impact: ImpactPoint | None = None,
         **robot_kwargs,
     ):
         check_not_forked_from_jax("JointLimitShieldWrapper")  # before any JAX call (fork_guard)
@@ -200,9 +215,12 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             torque_limits=torque_limits,
             correct_contacts=correct_contacts,
             start_inside=start_inside,
+            impact=impact,
             **robot_kwargs,
         )
         gymnasium.Wrapper.__init__(self, env)
+        if impact is not None and not isinstance(impact, ImpactPoint):
+            raise TypeError(f"impact must be None or an ImpactPoint, got {type(impact).__name__}")
         base = env.unwrapped
         self.torque_limits = bool(torque_limits) and method != "none"
         self.correct_contacts = bool(correct_contacts) and method != "none"
@@ -225,6 +243,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         self.robot = rob = Robot.from_model(base.model, joints, v_max, a_max, j_max, **robot_kwargs)
         self.actuation = CActuation(rob, base.model)
         self.method = method
+        self.impact = None if impact is None else impact.resolve(base.model, rob)
+        if self.impact is not None and method == "none":
+            raise ValueError("an impact cap needs the bounds of a method: 'viability', 'jerk' or 'naive', not 'none'")
         self._base = base
         self._robot_key = rob.fingerprint()
         self._deciders = {}  # n_frames -> (SafeAcceleration, compiled XLA executable); shared: _SHARED_DECIDERS
@@ -309,10 +330,11 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         the decision once, not ``N`` times (~10 s each here)."""
         hit = self._deciders.get(n_frames)
         if hit is None:
-            key = (self._robot_key, self.method, self.torque_limits, int(n_frames))
+            impact_key = None if self.impact is None else self.impact.key()
+            key = (self._robot_key, self.method, self.torque_limits, int(n_frames), impact_key)
             hit = _SHARED_DECIDERS.get(key)
             if hit is None:
-                hit = _compile_decider(self.robot, int(n_frames), self.method, self.torque_limits)
+                hit = _compile_decider(self.robot, int(n_frames), self.method, self.torque_limits, self.impact)
                 _SHARED_DECIDERS.put(key, hit)
             self._deciders[n_frames] = hit
         return hit
@@ -342,12 +364,15 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             a_des = np.full(n, np.nan)
         tm = act.torque_model(d, M, f, self._h * n_frames)
         f32 = np.float32
+        imp = self.impact
+        impact_terms = () if imp is None else imp.c_terms(m, d, dofs)
         out = compiled(
             d.qpos[qadr].astype(f32),
             d.qvel[dofs].astype(f32),
             a_des.astype(f32),
             self.a_prev,
             *(x.astype(f32) for x in tm),
+            *(x.astype(f32) for x in impact_terms),
         )
         out = np.asarray(out)
         self.a_prev = out[:n]  # a fresh host array per call
@@ -360,9 +385,13 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         V[0] = d.qvel[dofs]
         corrected = 0.0
         disturbed = False
+        speed = -np.inf
         for k in range(n_frames):
             if k:
                 _, M, f = act.smooth_stage(d, ctrl, want_a_des=False)
+            if imp is not None:  # the point's approach speed at the substep's start
+                J = impact_terms[1] if k == 0 else imp.c_jacobian(m, d, dofs)
+                speed = max(speed, float(imp.normal @ (J @ d.qvel[dofs])))
             inv, out_k = act.finish_substep(d, M, f, a_safe, band, rk4_tol)
             if out_k is not None:
                 out_k = np.abs(out_k)
@@ -406,6 +435,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 "beyond_bounds": max(float(np.maximum(a_safe - upper, lower - a_safe).max()), 0.0),
             }
         )
+        if imp is not None:
+            cap, excess = float(out[4 * n + 2]), float(out[4 * n + 3])
+            # beyond the float32 roundoff of the row (1e-4 of the cap, 1e-5 m/s)
+            self._records[-1].update(impact_cap=cap, impact_infeasible=excess > 1e-4 * cap + 1e-5, impact_speed=speed)
 
     def _disturbed(self, m, d) -> bool:
         """Did a constraint force other than the shielded joints' own limit rows act on a shielded dof this
@@ -493,6 +526,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 rec[k] = max(rec[k], r[k])
             for k in ("saturated", "nonfinite", "constrained", "disturbance", "torque_conflict"):
                 rec[k] = rec[k] or r[k]
+            if self.impact is not None:
+                rec["impact_cap"] = min(rec["impact_cap"], r["impact_cap"])
+                rec["impact_speed"] = max(rec["impact_speed"], r["impact_speed"])
+                rec["impact_infeasible"] = rec["impact_infeasible"] or r["impact_infeasible"]
             rec["viable"] = rec["viable"] and r["viable"]
         info = dict(info)
         info["violation"] = {k: rec[k] for k in VIOLATIONS}
@@ -514,6 +551,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         t["max_beyond_bounds"] = max(t["max_beyond_bounds"], rec["beyond_bounds"])
         t["contact_corrected"] += rec["contact_corrected"] > 0.0
         t["max_contact_corrected"] = max(t["max_contact_corrected"], rec["contact_corrected"])
+        if self.impact is not None:
+            t["impact_infeasible"] += rec["impact_infeasible"]
+            t["max_impact_speed"] = max(t["max_impact_speed"], rec["impact_speed"])
         return obs, reward, terminated, truncated, info
 
     def brake_on_next_step(self) -> None:

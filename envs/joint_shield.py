@@ -69,6 +69,9 @@ class Decision(NamedTuple):
     viable: jax.Array  # bool, the state was in the viability kernel
     nonfinite: jax.Array  # bool, a_des had a NaN/inf entry and braking was substituted
     conflict: jax.Array  # bool, not even the position/velocity/viability terms were realisable (torque box held)
+    # the impact cap (``impact_point``), ``(...)`` each; 0 without one
+    impact_cap: jax.Array  # [m/s] the largest safe approach speed of the impact point
+    impact_excess: jax.Array  # [m/s] how far a_safe's end-of-step approach speed exceeds it (no command met it)
 
 
 class SafeAcceleration:
@@ -81,6 +84,7 @@ class SafeAcceleration:
         method: str = "viability",
         gradient: str = "exact",
         realisation_margin: bool = False,
+        impact=None,
     ):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -90,7 +94,10 @@ class SafeAcceleration:
             raise ValueError(f"gradient must be one of {jl.PROJECTION_GRADIENTS}, got {gradient!r}")
         if method == "jerk" and robot.limits.j_max is None:
             raise ValueError("method='jerk' needs j_max (argument or <numeric name='jaxlimits_j_max'>)")
+        if impact is not None and method == "none":
+            raise ValueError("an impact cap needs the bounds of a method: 'viability', 'jerk' or 'naive', not 'none'")
         self.robot, self.method, self.gradient = robot, method, gradient
+        self.impact = impact  # an ``impact_point.ImpactModel`` or None
         self.n_frames = int(n_frames)
         self.dt = robot.timestep * self.n_frames
         self.integrator = robot.integrator
@@ -118,8 +125,13 @@ class SafeAcceleration:
             placed = robot.bound_positions(np.zeros(robot.n), self.dt, lim)[1]
             jl.check_jerk_condition(placed, self.dt, self.integrator, self.substeps)
 
-    def __call__(self, q, v, a_des, a_prev=None, torque=None) -> Decision:
-        """``torque``: optional ``actuation.TorqueModel`` (``tau = M a - f`` in ``[tau_lo, tau_hi]``). Then the
+    def __call__(self, q, v, a_des, a_prev=None, torque=None, impact_terms=None) -> Decision:
+        """``impact_terms``: ``(M, J, J_rate)`` (``(n, n)``, ``(3, n)``, ``(3, n)``) at the state, for the impact cap the shield was
+        built with (``impact_point``; required then): its row ``G a <= h`` joins the projection (the box QP
+        ``jl.solve_box_qp``; with ``torque``, the first solve's rows; where the bounds and the torques leave no
+        command meeting it, they hold and the excess is ``Decision.impact_excess``).
+
+        ``torque``: optional ``actuation.TorqueModel`` (``tau = M a - f`` in ``[tau_lo, tau_hi]``). Then the
         decision is made in torque space, where the realisable set is a box (``_torque_space``):
         ``jl.solve_box_qp`` projects ``tau_des = M a_des - f`` onto the torque box and the bounds as
         halfspaces ``M^-1 (tau + f) <= upper`` (and ``>= lower``), in the metric ``M^-1`` (Gauss's: the
@@ -135,25 +147,54 @@ class SafeAcceleration:
         a_in = jnp.where(bad, -jnp.sign(v) * a_max, a_des)
         if self.method == "none":
             inf = jnp.full(jnp.shape(v), jnp.inf, dtype)
-            return Decision(a_in, -inf, inf, jnp.ones(jnp.shape(v), bool), bad[..., 0], jnp.zeros_like(bad[..., 0]))
+            zero = jnp.zeros(jnp.shape(v)[:-1], dtype)
+            ok = jnp.ones(jnp.shape(v), bool)
+            return Decision(a_in, -inf, inf, ok, bad[..., 0], jnp.zeros_like(bad[..., 0]), zero, zero)
         q_eff, lim = self.robot.bound_positions(q, self.dt, self.limits)
         kwargs = dict(method=self.method, integrator=self.integrator, substeps=self.substeps)
         if self.method == "jerk":
             kwargs["a_prev"] = jnp.zeros_like(v) if a_prev is None else a_prev
         b = jl.acc_bounds(q_eff, v, lim, self.dt, **kwargs)
-        if torque is None:
+        rows = None
+        cap = jnp.zeros(jnp.shape(v)[:-1], dtype)
+        if self.impact is not None:
+            if impact_terms is None:
+                raise ValueError("this shield has an impact cap: pass impact_terms=(M, J, J_rate)")
+            G, h, cap, u = self.impact.halfspace(*impact_terms, q_eff, v, lim, self.dt, b.lower, b.upper)
+            rows = (G, h)
+        measured, a_free = rows, a_in
+        if rows is not None and not self.impact.enforce:
+            rows = None  # measured only: the excess below is what the decision without the cap gives
+        if rows is not None:  # the command's excess removed along u first (ImpactModel.halfspace)
+            g = G[..., 0, :]
+            gu = jnp.einsum("...n,...n->...", g, u)[..., None]
+            excess = jnp.maximum(jnp.einsum("...n,...n->...", g, a_in)[..., None] - h, 0.0)
+            ok = gu > 1e-6
+            a_in = a_in - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
+        if torque is None and rows is None:
             a_safe = jl.project_box(a_in, b.lower, b.upper, gradient=self.gradient)
+            conflict = jnp.zeros(jnp.shape(v)[:-1], bool)
+        elif torque is None:
+            a_safe = jl.solve_box_qp(a_in, b.lower, b.upper, G=rows[0], h=rows[1], gradient=self.gradient).x
             conflict = jnp.zeros(jnp.shape(v)[:-1], bool)
         else:
             # the safety terms: the viability family's (for "jerk" too: its kernel contains the jerk kernel,
             # so giving way on the jerk box keeps the position and velocity limits)
             hard = dict(kwargs, method="viability" if self.method == "jerk" else self.method)
             hard.pop("a_prev", None)
-            a_safe, conflict = self._torque_space(a_in, b, jl.bound_terms(q_eff, v, lim, self.dt, **hard), torque)
-        return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict)
+            terms = jl.bound_terms(q_eff, v, lim, self.dt, **hard)
+            a_safe, conflict = self._torque_space(a_in, b, terms, torque, rows, a_free)
+        excess = jnp.zeros_like(cap)
+        if measured is not None:
+            G, h = measured
+            excess = jnp.maximum(jnp.einsum("...n,...n->...", G[..., 0, :], a_safe) - h[..., 0], 0.0)
+        return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict, cap, excess)
 
-    def _torque_space(self, a_in, b, terms, torque):
+    def _torque_space(self, a_in, b, terms, torque, impact_rows=None, a_free=None):
         """The torque-space decision (see ``__call__``) and its conflict rule; returns ``(a_safe, conflict)``.
+        ``impact_rows``: ``(G (1, n), h (1,))`` the impact cap's row in the acceleration, added to step 1's rows
+        (where it makes step 1 infeasible, step 1 runs again without it, from ``a_free``, the command before the
+        cap's correction: the cap is the first to give way).
 
         1. ``tau_des = M a_des - f`` projected onto the torque box and the bounds as halfspaces
            ``lower <= M^-1 (tau + f) <= upper``: the nearest realisable acceleration inside the bounds
@@ -179,17 +220,20 @@ class SafeAcceleration:
         batch 256 cost +115 % over the unwrapped env instead of +47 %, measured: not done.)"""
         M, f = torque.M_ss, torque.f_s
 
-        def solve_in_acceleration(a_from):
+        def solve_in_acceleration(a_from, accel_rows=None):
             # the same problem, written in the acceleration (a = M^-1 (tau + f)): the bounds are the box, the
             # torque limits the rows ``tau_lo <= M a - f <= tau_hi``; the objective (a - a_from)^T M (a - a_from)
             # is Gauss's metric of before, so where the problem is feasible the answer is the same point
             rows = jnp.concatenate([M, -M], axis=-2)
             h = jnp.concatenate([torque.tau_hi + f, -(torque.tau_lo + f)], axis=-1)
+            if accel_rows is not None:
+                rows = jnp.concatenate([rows, accel_rows[0].astype(rows.dtype)], axis=-2)
+                h = jnp.concatenate([h, accel_rows[1].astype(h.dtype)], axis=-1)
             res = jl.solve_box_qp(a_from, b.lower, b.upper, M, G=rows, h=h, gradient=self.gradient)
             ok = jnp.all(jnp.isfinite(res.x), axis=-1) & res.converged
             return res.x, res.infeasible | ~ok
 
-        def solve(a_from, lo, hi):
+        def solve(a_from, lo, hi, accel_rows=None):
             # in the torque (inside the give-way branch: for one problem, computed only where it runs)
             Minv = jnp.linalg.inv(M)
             Minv = 0.5 * (Minv + jnp.swapaxes(Minv, -1, -2))
@@ -197,21 +241,36 @@ class SafeAcceleration:
             G = jnp.concatenate([Minv, -Minv], axis=-2)
             tau = (M @ a_from[..., None])[..., 0] - f
             h = jnp.concatenate([hi - a0, a0 - lo], axis=-1)
+            if accel_rows is not None:  # G_a a <= h_a with a = a0 + M^-1 tau
+                G_a, h_a = (x.astype(G.dtype) for x in accel_rows)
+                G = jnp.concatenate([G, G_a @ Minv], axis=-2)
+                h = jnp.concatenate([h, h_a - (G_a @ a0[..., None])[..., 0]], axis=-1)
             res = jl.solve_box_qp(tau, torque.tau_lo, torque.tau_hi, Minv, G=G, h=h, gradient=self.gradient)
             a = a0 + (Minv @ res.x[..., None])[..., 0]
             # never a NaN to the simulator: a failed solve (ill-conditioned M in float32) is not used
             ok = jnp.all(jnp.isfinite(a), axis=-1) & res.converged
             return a, res.infeasible | ~ok
 
-        a_c = jnp.clip(a_in, b.lower, b.upper)
+        a_c = jnp.clip(a_in if a_free is None else a_free, b.lower, b.upper)
+
         # from the command itself, not its clip: from the clip, the nearest realisable point in this metric
         # let a light joint drift against its command (measured: Pusher-v5's shoulder pan ran to its lower
         # limit under an all-upper action, tests/test_gym_shield.py), although that start made the batch's
         # solves ~4x cheaper (Brax pusher, batch 256)
-        if ACCEL_SPACE_FIRST:
-            a_full, fail_full = solve_in_acceleration(a_in)
-        else:
-            a_full, fail_full = solve(a_in, b.lower, b.upper)
+        def first(a_from, rows=None):
+            if ACCEL_SPACE_FIRST:
+                return solve_in_acceleration(a_from, rows)
+            return solve(a_from, b.lower, b.upper, rows)
+
+        a_full, fail_full = first(a_in, impact_rows)
+        if impact_rows is not None:  # the cap gives way first: step 1 again without its row where it failed
+            a_free = a_in if a_free is None else a_free
+            if jnp.ndim(fail_full) == 0:
+                a_full, fail_full = jax.lax.cond(fail_full, lambda: first(a_free), lambda: (a_full, fail_full))
+            else:
+                a_nocap, fail_nocap = first(a_free)
+                a_full = jnp.where(fail_full[..., None], a_nocap, a_full)
+                fail_full = fail_full & fail_nocap
         hard_up = _reduce(jnp.minimum, terms["upper"], b.upper)
         hard_lo = _reduce(jnp.maximum, terms["lower"], b.lower)
 

@@ -19,7 +19,8 @@ do reach the limits (a campaign whose unshielded rows were clean would prove not
 Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
 cap, the same cap anticipating braking, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher``, ``pusher``, ``ant`` and ``hopper`` under
-``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none), whose metrics ``EvaluatorMetrics``
+``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none; for ``pusher`` also viability + the impact
+cap on its wrist, ``JointLimitShield(impact=ImpactPoint(...))``), whose metrics ``EvaluatorMetrics``
 renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env; and Gymnasium's
 ``Reacher-v5`` and ``Pusher-v5`` under ``JointLimitShieldWrapper`` (viability, none; ``campaign_gym``), the same
 policy classes, episode keys and columns, but not through the evaluator: one env at a time in C MuJoCo, the
@@ -84,6 +85,8 @@ class EvaluatorMetrics(Wrapper):
         m["viable"] = 1.0 - m["shield/nonviable"]
         m["torque_box_conflict"] = m["shield/torque_conflict"]
         m["disturbance"] = m["shield/disturbance"]
+        if "shield/impact_infeasible" in m:  # an impact point's cap (JointLimitShield(impact=))
+            m["impact_infeasible"] = m["shield/impact_infeasible"]
         m.setdefault("distance", zero)
         return state.replace(metrics=m)
 
@@ -139,12 +142,15 @@ def _arm(env_name: str):
     return make
 
 
-def _third_party(make_env, inside: bool = False, **kwargs):
+def _third_party(make_env, inside: bool = False, impact=None, **kwargs):
+    """``impact``: the ``ImpactPoint`` the target's ``+impact`` shields cap (``JointLimitShield(impact=)``)."""
+
     def make(shield):
         from jaxlimits.envs import JointLimitShield
         from jaxlimits.envs.nonfinite_guard import NonFiniteActionGuard
 
-        env = JointLimitShield(make_env(), method=shield, **kwargs)
+        method, *extras = shield.split("+")
+        env = JointLimitShield(make_env(), method=method, impact=impact if "impact" in extras else None, **kwargs)
         return EvaluatorMetrics(NonFiniteActionGuard(InsideReset(env) if inside else env))
 
     return make
@@ -159,6 +165,13 @@ def _brax(name):
         return brax.envs.get_environment(name, backend="mjx")
 
     return make
+
+
+def _pusher_wrist():
+    """Brax ``pusher``'s wrist striking its table from above (``benchmarks/impact_third_party.py``)."""
+    from jaxlimits.envs.impact_point import ImpactPoint
+
+    return ImpactPoint("r_wrist_roll_link", normal=(0.0, 0.0, -1.0))
 
 
 def _servo_panda():
@@ -189,7 +202,10 @@ TARGETS = {
         "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), **_SHIELD_MEASURES
     ),
     "brax pusher": Target(
-        "brax pusher", _third_party(_brax("pusher"), inside=True, v_max=2.0), ("viability", "none"), **_SHIELD_MEASURES
+        "brax pusher",
+        _third_party(_brax("pusher"), inside=True, impact=_pusher_wrist(), v_max=2.0),
+        ("viability", "viability+impact", "none"),
+        **_SHIELD_MEASURES,
     ),
     # Brax's own locomotion envs: a floating (ant) or planar (hopper) base on its feet, started inside the ranges
     **{

@@ -1,0 +1,210 @@
+"""The impact-aware speed cap (Wang & Kheddar 2019) for any MuJoCo model: the point that may strike, read from it.
+
+    env = JointLimitShield(brax.envs.get_environment("pusher", backend="mjx"), v_max=2.0,
+                           impact=ImpactPoint("tips_arm", normal=(0, 0, -1)))
+
+``ImpactPoint`` names the point of the robot that may strike a surface (a site, else a body's origin) and the
+direction it would strike in (``normal``: world frame, pointing *into* the surface; ``(0, 0, -1)`` for a floor or
+a table below). Each control step the shield evaluates, at the step's start state, the shielded joints' mass
+matrix ``M`` ``(n, n)`` and the point's translational Jacobian ``J`` ``(3, n)``, and from them the largest safe
+approach speed ``cap`` [m/s] (``jaxlimits.impact.impact_speed_cap``: the predicted joint-velocity jumps keep the
+position (16) and velocity (17) limits and the impulsive torques (20) ``tau_imp_max``), for every pre-impact
+velocity ``v + dt [lower - a_max, upper + a_max]`` within ``±v_max`` (this step's bounds and what the next step
+adds: a strike early in the next step comes at this step's end velocity). The cap enters the decision as one
+halfspace row on the end-of-step speed, ``n̂ . J (v + a dt) <= margin cap``
+(``jaxlimits.impact.speed_cap_halfspace``), beside the acceleration bounds and the torque rows. Where no command
+inside the bounds and the actuators' torque range meets it, the bounds and the torques hold and the cap is exceeded
+(``Decision.impact_excess`` [m/s], counted as ``shield/impact_infeasible``). The same model as the project's own
+``WallStrike`` (``SafetyWrapper(impact=)``), without its task-consistent pre-correction: in the torque-space decision
+the projection runs in Gauss's metric ``M``, whose correction direction for this row is already
+``M^-1 J^T n̂``.
+
+What the cap does not know (documented limits of the model): the surface's position (the cap applies wherever the
+point is, approaching or not: it slows the point's motion along ``normal`` everywhere); the unshielded dofs (the
+jumps are those of the shielded chain with the others held, as ``actuation.TorqueModel``); a strike by another
+part of the robot than the named point.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+from mujoco import mjx
+from mujoco.mjx._src import support as _mjx_support  # jac_dot: not re-exported by mjx 3.17
+import numpy as np
+
+import jaxlimits.impact as _impact
+
+
+class ImpactPoint(NamedTuple):
+    """Where and how the robot may strike (SI units).
+
+    point: a site name of the model, else a body name (the body's origin).
+    normal: ``(3,)`` world direction of approach, into the surface (normalised here; not zero).
+    c_range: restitution range ``(c_min, c_max)``; the predictions use ``c_max``.
+    dt_impact: impact duration [s] (Wang & Kheddar's 0.005 s).
+    tau_imp_max: ``(n,)`` or scalar impulsive joint-torque bound [N m]; ``None``: each shielded actuator's peak joint
+      torque (``peak_torque``: its ``forcerange``, else a motor's ``ctrlrange``, times its gear), as the project's
+      ``WallStrike`` takes its motors' limits. A gearbox usually tolerates more for an impact's few milliseconds:
+      pass your robot's figure.
+    margin: the cap is scaled by it, in ``(0, 1]``.
+    contact: a ``jaxlimits.impact.ContactModel``; ``None``: ``PaperContact()`` (frictionless, the paper's).
+    enforce: ``True``: the cap is a row of the decision; ``False``: only measured (the cap and the approach speed are
+      reported, the decision is the one without it: what a robot's strikes would be, against the cap).
+    """
+
+    point: str
+    normal: tuple = (0.0, 0.0, -1.0)
+    c_range: tuple = (0.0, 0.2)
+    dt_impact: float = 0.005
+    tau_imp_max: object = None
+    margin: float = 1.0
+    contact: object = None
+    enforce: bool = True
+
+    def resolve(self, mj_model: mujoco.MjModel, robot) -> "ImpactModel":
+        """The checked, numeric form for ``robot`` (a ``Robot`` of ``mj_model``). Raises ``ValueError`` naming the
+        field and value (an unknown point lists the model's sites and bodies)."""
+        site = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, self.point) if self.point else -1
+        body = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, self.point) if self.point else -1
+        if site < 0 and body < 0:
+            names = lambda kind, count: [mujoco.mj_id2name(mj_model, kind, i) for i in range(count)]  # noqa: E731
+            raise ValueError(
+                f"ImpactPoint.point {self.point!r} is neither a site nor a body of the model; sites: "
+                f"{names(mujoco.mjtObj.mjOBJ_SITE, mj_model.nsite)}, bodies: {names(mujoco.mjtObj.mjOBJ_BODY, mj_model.nbody)}"
+            )
+        if site >= 0:
+            body = int(mj_model.site_bodyid[site])
+        if body == 0:
+            raise ValueError(f"ImpactPoint.point {self.point!r} is on the world body: it cannot strike")
+        normal = np.asarray(self.normal, np.float64)
+        norm = float(np.linalg.norm(normal)) if normal.shape == (3,) else 0.0
+        if not (np.isfinite(norm) and norm > 0):
+            raise ValueError(f"ImpactPoint.normal must be a finite non-zero 3-vector, got {self.normal!r}")
+        c_max = _impact.check_restitution(*self.c_range)
+        if not float(self.dt_impact) > 0:
+            raise ValueError(f"ImpactPoint.dt_impact must be > 0, got {self.dt_impact!r}")
+        if not 0.0 < float(self.margin) <= 1.0:
+            raise ValueError(f"ImpactPoint.margin must be in (0, 1], got {self.margin!r}")
+        tau = peak_torque(robot) if self.tau_imp_max is None else self.tau_imp_max
+        tau = np.broadcast_to(np.asarray(tau, np.float64), (robot.n,)).copy()
+        if not (np.all(np.isfinite(tau)) and np.all(tau > 0)):
+            bad = {robot.names[i]: float(tau[i]) for i in np.flatnonzero(~(np.isfinite(tau) & (tau > 0)))}
+            raise ValueError(f"ImpactPoint.tau_imp_max must be finite and > 0 per joint, got {bad}")
+        contact = _impact.check_contact(_impact.PaperContact() if self.contact is None else self.contact)
+        if not isinstance(self.enforce, bool):
+            raise ValueError(f"ImpactPoint.enforce must be True or False, got {self.enforce!r}")
+        return ImpactModel(
+            site, body, normal / norm, c_max, float(self.dt_impact), tau, float(self.margin), contact, self.enforce
+        )
+
+
+def peak_torque(robot) -> np.ndarray:
+    """``(n,)`` each shielded actuator's largest joint torque [N m or N]: ``|gear| max|forcerange|`` where the force
+    is limited, else ``|gear gain| max|ctrlrange|`` for a motor (no bias); ``ValueError`` naming the joints where
+    neither bounds it (a servo without ``forcerange``: its force grows with the position error)."""
+    force = np.max(np.abs(robot.force_range), axis=1)
+    motor = np.all(robot.bias == 0, axis=1)
+    ctrl = np.where(motor, np.abs(robot.gain) * np.max(np.abs(robot.ctrl_range), axis=1), np.inf)
+    peak = np.abs(robot.gear) * np.minimum(force, ctrl)
+    unbounded = [robot.names[i] for i in np.flatnonzero(~np.isfinite(peak))]
+    if unbounded:
+        raise ValueError(
+            f"joints {unbounded}: no forcerange bounds their actuators' torque; pass ImpactPoint.tau_imp_max"
+        )
+    return peak
+
+
+class ImpactModel(NamedTuple):
+    """``ImpactPoint`` resolved against a model: ``site`` (-1: the body's origin), ``body``, the unit ``normal``,
+    ``c_max``, ``dt_impact`` [s], ``tau_imp_max`` ``(n,)`` [N m], ``margin``, ``contact``, ``enforce``."""
+
+    site: int
+    body: int
+    normal: np.ndarray
+    c_max: float
+    dt_impact: float
+    tau_imp_max: np.ndarray
+    margin: float
+    contact: object
+    enforce: bool
+
+    def point_position(self, d) -> jax.Array:
+        """``(3,)`` the point in the world at ``d``'s kinematics (MJX data after ``fwd_position``)."""
+        return d.site_xpos[self.site] if self.site >= 0 else d.xpos[self.body]
+
+    def jacobian(self, sys, d, dofs) -> jax.Array:
+        """``(3, n)`` the point's translational Jacobian on the shielded dofs (``mjx.jac``), at ``d``'s state."""
+        jacp, _ = mjx.jac(sys, d, self.point_position(d), self.body)
+        return jnp.swapaxes(jacp[np.asarray(dofs)], 0, 1)
+
+    def jacobian_rate(self, sys, d, dofs) -> jax.Array:
+        """``(3, n)`` its time derivative at ``d``'s state and velocity (after ``fwd_velocity``)."""
+        jdot, _ = _mjx_support.jac_dot(sys, d, self.point_position(d), self.body)  # not re-exported by mjx 3.17
+        return jnp.swapaxes(jdot[np.asarray(dofs)], 0, 1)
+
+    def halfspace(self, M, J, J_rate, q, v, limits, dt, lower, upper):
+        """``(G (1, n), h (1,), cap, u (n,))``: the cap [m/s] at ``(q, v)`` for pre-impact velocities in
+        ``v + dt [lower - a_max, upper + a_max]`` within ``±v_max``, and its row ``G a <= h`` on the end-of-step
+        speed (module docstring). ``M`` ``(n, n)`` the shielded joints' mass matrix, ``J`` ``(3, n)``, ``J_rate``
+        its time derivative: the row reads the end-of-step speed through ``J + dt J_rate`` (the Jacobian where the
+        step ends, to first order: with ``J`` alone, the pusher's wrist turning at 2 rad/s moved its measured
+        approach speed past a 1.4 mm/s cap by up to 8 mm/s). ``u = M^-1 J^T M_eq n̂`` (``J u = n̂``): the joint
+        direction that changes only the point's normal acceleration, along which the decision first removes a
+        command's excess (``SafetyWrapper``'s task-consistent correction: a projection alone turns the excess into
+        tangential motion, docs/impact.md)."""
+        dtype = jnp.result_type(v)
+        dt = jnp.asarray(dt, dtype)
+        v_max = jnp.broadcast_to(jnp.asarray(limits.v_max, dtype), v.shape)
+        reach = dt * jnp.broadcast_to(jnp.asarray(limits.a_max, dtype), v.shape)
+        lo = jnp.maximum(v + dt * lower - reach, -v_max)
+        hi = jnp.minimum(v + dt * upper + reach, v_max)
+        normal = jnp.asarray(self.normal, dtype)
+        cap = _impact.impact_speed_cap(
+            M,
+            J,
+            normal,
+            q,
+            v,
+            limits,
+            jnp.asarray(self.tau_imp_max, dtype),
+            dt,
+            self.c_max,
+            self.dt_impact,
+            _impact.DEFAULT_REG,
+            v_pre_range=(jnp.minimum(lo, hi), jnp.maximum(lo, hi)),
+            contact=self.contact,
+        ).cap
+        cap = cap * jnp.asarray(self.margin, dtype)
+        G, h = _impact.speed_cap_halfspace(M, J + dt * J_rate, normal, v, cap, dt)
+        u = -_impact.impact_jump(M, J, normal, v, 0.0, 1.0, _impact.DEFAULT_REG).dq_dw
+        return G, h, cap, u
+
+    def c_jacobian(self, model: mujoco.MjModel, data: mujoco.MjData, dofs, rate: bool = False) -> np.ndarray:
+        """``(3, n)`` the point's translational Jacobian on the shielded dofs from C MuJoCo (``mj_jac``; its time
+        derivative ``mj_jacDot`` with ``rate``), at ``data``'s kinematics (and velocities for the rate)."""
+        point = data.site_xpos[self.site] if self.site >= 0 else data.xpos[self.body]
+        jac = np.zeros((3, model.nv))
+        (mujoco.mj_jacDot if rate else mujoco.mj_jac)(model, data, jac, None, point, self.body)
+        return jac[:, dofs]
+
+    def c_terms(self, model: mujoco.MjModel, data: mujoco.MjData, dofs) -> tuple:
+        """``(M, J, J_rate)`` for ``halfspace`` from C MuJoCo (float64): the shielded joints' block of ``mj_fullM``
+        (``(n, n)``) and the two Jacobians, at ``data``'s state (after the position and velocity stages)."""
+        M = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, M)
+        return M[dofs, :][:, dofs], self.c_jacobian(model, data, dofs), self.c_jacobian(model, data, dofs, True)
+
+    def key(self) -> tuple:
+        """A hashable digest of every field (a compiled decision's cache key)."""
+        return tuple(np.asarray(x).tobytes() if isinstance(x, np.ndarray) else repr(x) for x in self)
+
+    def approach_speed(self, J, v) -> jax.Array:
+        """``()`` the point's speed along ``normal`` [m/s] for joint velocity ``v`` (positive: approaching)."""
+        return jnp.dot(jnp.asarray(self.normal, J.dtype), J @ v)
+
+
+__all__ = ["ImpactModel", "ImpactPoint"]
