@@ -113,3 +113,16 @@ def test_cli_runs_a_gym_target(tmp_path):
     assert f"| {TARGET} | viability | toward_limit | 300 |" in (out / "campaign.md").read_text()
     with pytest.raises(SystemExit, match="the targets' shields"):
         campaign.main(["--targets", TARGET, "--shields", "jerk"])
+
+
+@pytest.mark.filterwarnings("ignore:jax was imported before jaxlimits:RuntimeWarning")
+def test_pusher_rows_under_the_impact_cap_count_where_it_was_not_met(tmp_path):
+    """``gym Pusher-v5`` under ``viability+impact`` (its wrist's cap, ``JointLimitShieldWrapper(impact=)``): no claimed
+    limit violated, and the steps where no command met the cap are counted (``cap infeasible``), not dropped."""
+    out = tmp_path / "campaign"
+    argv = ["--targets", "gym Pusher-v5", "--shields", "viability+impact", "--policies", "toward_limit"]
+    assert campaign.main(argv + ["--steps", "200", "--episode-length", "100", "--out", str(out)]) == 0
+    (r,) = json.loads((out / "campaign.json").read_text())["rows"]
+    assert (r["shield"], r["env_steps"]) == ("viability+impact", 200)
+    assert r["position/count"] == 0 and r["velocity/count"] == 0, r
+    assert 0 < r["impact_infeasible"] <= r["env_steps"], r

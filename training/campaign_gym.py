@@ -4,7 +4,8 @@
 Gymnasium's ``Reacher-v5`` (RK4, an unlimited joint), ``Pusher-v5`` (Euler, the arm on a table) and the
 locomotion envs ``Ant-v5``, ``Hopper-v5``, ``Walker2d-v5`` (RK4, feet on the floor; started inside their joint
 ranges, the wrapper's ``start_inside``, at ``v_max`` 3 rad/s) shielded
-(``viability``) and unshielded (``none``: the same wrapper, only its NaN guard), with the ``v_max`` of
+(``viability``; ``Pusher-v5`` also ``viability+impact``, the impact cap on its ``tips_arm`` striking the table from above)
+and unshielded (``none``: the same wrapper, only its NaN guard), with the ``v_max`` of
 ``tests/test_gym_shield.py`` and ``benchmarks/bench_gym_shield.py`` (Reacher 4 rad/s, Pusher 2 rad/s) and a
 ``NonFiniteActionGuardWrapper`` outside (as ``NonFiniteActionGuard`` is for the Brax targets: a NaN action never
 reaches the env's reward). ``GymTarget.rows`` gives rows with exactly the keys of ``campaign.run_row_set``, so
@@ -57,6 +58,7 @@ from typing import Callable
 import numpy as np
 
 from jaxlimits.envs.arm import VIOLATION_KEYS
+from jaxlimits.envs.impact_point import ImpactPoint
 from jaxlimits.training.campaign_policies import campaign_policy
 from jaxlimits.training.campaign_rows import make_row
 
@@ -136,7 +138,7 @@ class GymTarget:
                 count = dict.fromkeys(VIOLATION_KEYS, 0)
                 worst = dict.fromkeys(VIOLATION_KEYS, 0.0)
                 undisturbed = dict.fromkeys(VIOLATION_KEYS, 0)
-                nonviable = conflicts = nonfinite = disturbed_steps = 0
+                nonviable = conflicts = nonfinite = disturbed_steps = impact_infeasible = 0
                 done = episode = 0
                 t0 = time.perf_counter()
                 while done < steps:
@@ -158,12 +160,14 @@ class GymTarget:
                         nonviable += not s["viable"]
                         conflicts += bool(s["torque_conflict"])
                         nonfinite += bool(s["nonfinite"])
+                        impact_infeasible += bool(s.get("impact_infeasible", False))
                         if terminated or truncated:
                             break
                     episode += 1
                 wall = time.perf_counter() - t0
                 counts = {"env_steps": done, "nonviable": nonviable, "conflicts": conflicts}
-                counts.update(disturbed_steps=disturbed_steps, impact_infeasible=0, nonfinite_actions=nonfinite)
+                counts.update(disturbed_steps=disturbed_steps, impact_infeasible=impact_infeasible)
+                counts["nonfinite_actions"] = nonfinite
                 counts["strikes"] = 0
                 for k in VIOLATION_KEYS:
                     counts[f"violations/{k}"] = count[k]
@@ -176,11 +180,12 @@ class GymTarget:
         return rows
 
 
-def gym_env(env_id: str, start_inside: bool = False, **shield_kwargs):
+def gym_env(env_id: str, start_inside: bool = False, impact=None, **shield_kwargs):
     """``make(shield, max_episode_steps=None)`` for ``GymTarget``: ``gymnasium.make(env_id)`` (its registered
     ``TimeLimit`` unless ``max_episode_steps`` is given) under ``JointLimitShieldWrapper(method=shield,
     **shield_kwargs)``, under a ``NonFiniteActionGuardWrapper``; ``start_inside``: the wrapper's (an env whose own
-    reset starts outside the joint ranges)."""
+    reset starts outside the joint ranges); ``impact``: the ``ImpactPoint`` of the ``+impact`` shields (its rows
+    count ``cap infeasible``)."""
 
     def make(shield: str, max_episode_steps: int | None = None):
         import gymnasium
@@ -189,9 +194,13 @@ def gym_env(env_id: str, start_inside: bool = False, **shield_kwargs):
         from jaxlimits.envs.gym_shield import JointLimitShieldWrapper
 
         env = gymnasium.make(env_id, max_episode_steps=max_episode_steps)
+        method, *extras = shield.split("+")
+        point = impact if "impact" in extras else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # Pusher: the torque-derived a_max's quantile warning
-            shielded = JointLimitShieldWrapper(env, method=shield, start_inside=start_inside, **shield_kwargs)
+            shielded = JointLimitShieldWrapper(
+                env, method=method, start_inside=start_inside, impact=point, **shield_kwargs
+            )
         return NonFiniteActionGuardWrapper(shielded)
 
     return make
@@ -201,7 +210,11 @@ def gym_env(env_id: str, start_inside: bool = False, **shield_kwargs):
 # envs (RK4, feet on the floor, a free or planar base) at 3 rad/s from starts inside their joint ranges
 GYM_TARGETS = {
     "gym Reacher-v5": GymTarget("gym Reacher-v5", gym_env("Reacher-v5", v_max=4.0)),
-    "gym Pusher-v5": GymTarget("gym Pusher-v5", gym_env("Pusher-v5", v_max=2.0)),
+    "gym Pusher-v5": GymTarget(
+        "gym Pusher-v5",
+        gym_env("Pusher-v5", impact=ImpactPoint("tips_arm", normal=(0.0, 0.0, -1.0)), v_max=2.0),
+        ("viability", "viability+impact", "none"),
+    ),
     **{
         f"gym {e}": GymTarget(f"gym {e}", gym_env(e, start_inside=True, v_max=3.0))
         for e in ("Ant-v5", "Hopper-v5", "Walker2d-v5")
