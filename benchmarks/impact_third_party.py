@@ -10,6 +10,10 @@ bang-bang, random), the same start states and actions:
 - ``capped``: viability with the cap enforced, the impulsive torque bound the motors' peak torque (2 N m);
 - ``capped x10``: the same with a bound ten times that (a gearbox's impact tolerance).
 
+(``ImpactPoint.surface`` would change nothing here: with the pusher's torque-derived ``a_max`` (0.016-3.2 rad/s^2)
+the wrist's braking distance along the normal is 1.7-15 m at sampled poses, the table ~0.1 m away, so the cap applies
+everywhere; docs/shield.md.)
+
 Columns: position / velocity-violating env-steps (every substep), steps over the cap (approach speed above
 ``max(cap_t-1, cap_t)`` by > 1 % + 1 mm/s), strikes (a contact disturbance begins) with their largest approach
 speed and how many came over the cap, steps where no command met the cap (``impact_infeasible``), and the cost of

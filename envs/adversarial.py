@@ -76,8 +76,8 @@ def shield_rollout(
     ``undisturbed/count/velocity``, ``undisturbed/max/accel_error``. With an impact point (``impact=``, enforced
     or measured): ``count/impact_infeasible``; ``count/over_cap`` (steps no contact disturbed whose approach speed
     exceeds the cap of the step before and its own, ``max(cap_t-1, cap_t)``, by over 1 % + 1 mm/s: the step before's
-    cap bounds its end speed, this step's its own; judged only where both steps met their caps and not on a
-    restart's step); ``count/strikes`` (steps where a contact disturbance begins) and ``max/strike_speed`` [m/s]
+    cap bounds its end speed, this step's its own; judged only where both steps applied and met their caps and not
+    on a restart's step); ``count/strikes`` (steps where a contact disturbance begins) and ``max/strike_speed`` [m/s]
     (the approach speed in such a step), ``count/strike_over_cap`` (those over the cap as above, where judged).
     """
     reset = env.reset if reset is None else reset
@@ -108,6 +108,7 @@ def shield_rollout(
                 prev, now = states.metrics, ns.metrics
                 speed, cap = now["shield/impact_speed"], now["shield/impact_cap"]
                 feasible = (prev["shield/impact_infeasible"] == 0) & (now["shield/impact_infeasible"] == 0)
+                feasible &= (prev["shield/impact_active"] > 0) & (now["shield/impact_active"] > 0)
                 judged = (t % episode != 0) & feasible
                 above = judged & (speed > 1.01 * jnp.maximum(prev["shield/impact_cap"], cap) + 1e-3)
                 strike = (m["disturbance"] > 0) & (prev["shield/disturbance"] == 0) & (t % episode != 0)

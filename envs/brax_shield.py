@@ -89,8 +89,9 @@ SHIELD_METRICS = VIOLATIONS + (
     "contact_corrected",
 )
 # with an impact cap (``impact=``): the cap [m/s], 0/1 where no command inside the bounds and the torques met it,
-# and the impact point's largest approach speed along the normal over the step's substeps [m/s]
-IMPACT_METRICS = ("impact_cap", "impact_infeasible", "impact_speed")
+# the impact point's largest approach speed along the normal over the step's substeps [m/s], and 0/1 whether the cap
+# applied (``ImpactPoint.surface``: only near it)
+IMPACT_METRICS = ("impact_cap", "impact_infeasible", "impact_speed", "impact_active")
 # fields a Brax env may have changed on its System after loading (read back into the MjModel copy)
 _SYNCED_FIELDS = (
     "actuator_gear",
@@ -204,7 +205,7 @@ class JointLimitShield(Wrapper):
         and ``walker2d`` their hips and knees, states outside any guarantee (counted as non-viable otherwise).
       impact: ``None`` or an ``ImpactPoint`` (``envs/impact_point.py``): the impact-aware speed cap on that point's
         approach speed along its normal, one more row of the decision; metrics ``shield/impact_cap``,
-        ``shield/impact_infeasible``, ``shield/impact_speed`` (``IMPACT_METRICS``).
+        ``shield/impact_infeasible``, ``shield/impact_speed``, ``shield/impact_active`` (``IMPACT_METRICS``).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``, ``impact``
@@ -307,6 +308,7 @@ class JointLimitShield(Wrapper):
                     sub_block(act.mass(M), dofs, dofs),
                     imp.jacobian(act.sys, d, dofs),
                     imp.jacobian_rate(act.sys, d, dofs),
+                    imp.point_position(d),
                 )
             return self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, torque, terms), a_des
 
@@ -347,7 +349,7 @@ class JointLimitShield(Wrapper):
         dtype = pipeline_state.qvel.dtype
         vec, flag = jnp.zeros((rob.n,), dtype), jnp.zeros((), bool)
         zero = jnp.zeros((), dtype)
-        dec0 = Decision(vec, vec, vec, jnp.zeros((rob.n,), bool), flag, flag, zero, zero)
+        dec0 = Decision(vec, vec, vec, jnp.zeros((rob.n,), bool), flag, flag, zero, zero, flag)
         init = batched_like((pipeline_state, dec0, vec), pipeline_state.qpos)  # one batching round under vmap
         (d_end, dec, a_des), recs = jax.lax.scan(substep, init, jnp.arange(self.n_frames))
         a = dec.a_safe
@@ -360,6 +362,7 @@ class JointLimitShield(Wrapper):
         rec["beyond_bounds"] = SafeAcceleration.beyond_bounds(dec)
         if self.impact is not None:
             rec["impact_cap"] = dec.impact_cap
+            rec["impact_active"] = dec.impact_active
             # beyond the float32 roundoff of the row (1e-4 of the cap, 1e-5 m/s)
             rec["impact_infeasible"] = dec.impact_excess > 1e-4 * dec.impact_cap + 1e-5
         self._outputs = (rec, dec, a_des)

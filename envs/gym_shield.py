@@ -118,8 +118,8 @@ _SHARED_DECIDERS = LruCache(32)  # (robot fingerprint, method, torque limits, n_
 def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bool, impact=None):
     """``(SafeAcceleration, compiled)``: the decision for ``robot`` over ``n_frames`` substeps, jitted and compiled
     ahead of time for float32 ``(n,)`` inputs (``JointLimitShieldWrapper._decider``); ``impact`` an
-    ``impact_point.ImpactModel`` (then three more inputs, ``M`` ``(n, n)``, ``J`` and ``J_rate`` ``(3, n)``, and two
-    more outputs, the cap and the excess)."""
+    ``impact_point.ImpactModel`` (then four more inputs, ``M`` ``(n, n)``, ``J`` and ``J_rate`` ``(3, n)``, the point
+    ``(3,)``, and three more outputs, the cap, the excess and whether it applied)."""
     decide = SafeAcceleration(robot, n_frames, method, impact=impact)
 
     def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi, *impact_terms):
@@ -135,13 +135,13 @@ def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bo
             dec.conflict.astype(f32)[None],
         ]
         if impact is not None:
-            parts += [dec.impact_cap.astype(f32)[None], dec.impact_excess.astype(f32)[None]]
+            parts += [x.astype(f32)[None] for x in (dec.impact_cap, dec.impact_excess, dec.impact_active)]
         return jnp.concatenate(parts)
 
     spec = jax.ShapeDtypeStruct((robot.n,), jnp.float32)
     mspec = jax.ShapeDtypeStruct((robot.n, robot.n), jnp.float32)
     jspec = jax.ShapeDtypeStruct((3, robot.n), jnp.float32)
-    extra = () if impact is None else (mspec, jspec, jspec)
+    extra = () if impact is None else (mspec, jspec, jspec, jax.ShapeDtypeStruct((3,), jnp.float32))
     return decide, jax.jit(packed).lower(spec, spec, spec, spec, mspec, spec, spec, spec, *extra).compile()
 
 
@@ -167,8 +167,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         Without it such a start is warned about once and counted (``reset``).
       impact: ``None`` or an ``ImpactPoint`` (``envs/impact_point.py``): the impact-aware speed cap on that point's
         approach speed along its normal, one more row of the decision; ``info["shield"]`` gets ``impact_cap``
-        [m/s], ``impact_infeasible`` (no command inside the bounds and the torques met it) and ``impact_speed``
-        (the point's largest approach speed over the step's substeps [m/s]).
+        [m/s], ``impact_infeasible`` (no command inside the bounds and the torques met it), ``impact_speed``
+        (the point's largest approach speed over the step's substeps [m/s]) and ``impact_active`` (the cap applied:
+        ``ImpactPoint.surface`` given, only near it).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes:
@@ -436,9 +437,12 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             }
         )
         if imp is not None:
-            cap, excess = float(out[4 * n + 2]), float(out[4 * n + 3])
+            cap, excess, active = float(out[4 * n + 2]), float(out[4 * n + 3]), bool(out[4 * n + 4] > 0.5)
             # beyond the float32 roundoff of the row (1e-4 of the cap, 1e-5 m/s)
-            self._records[-1].update(impact_cap=cap, impact_infeasible=excess > 1e-4 * cap + 1e-5, impact_speed=speed)
+            infeasible = excess > 1e-4 * cap + 1e-5
+            self._records[-1].update(
+                impact_cap=cap, impact_infeasible=infeasible, impact_speed=speed, impact_active=active
+            )
 
     def _disturbed(self, m, d) -> bool:
         """Did a constraint force other than the shielded joints' own limit rows act on a shielded dof this
@@ -530,6 +534,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 rec["impact_cap"] = min(rec["impact_cap"], r["impact_cap"])
                 rec["impact_speed"] = max(rec["impact_speed"], r["impact_speed"])
                 rec["impact_infeasible"] = rec["impact_infeasible"] or r["impact_infeasible"]
+                rec["impact_active"] = rec["impact_active"] or r["impact_active"]
             rec["viable"] = rec["viable"] and r["viable"]
         info = dict(info)
         info["violation"] = {k: rec[k] for k in VIOLATIONS}

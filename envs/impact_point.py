@@ -54,6 +54,11 @@ class ImpactPoint(NamedTuple):
     contact: a ``jaxlimits.impact.ContactModel``; ``None``: ``PaperContact()`` (frictionless, the paper's).
     enforce: ``True``: the cap is a row of the decision; ``False``: only measured (the cap and the approach speed are
       reported, the decision is the one without it: what a robot's strikes would be, against the cap).
+    surface: ``None`` (the cap applies everywhere) or ``(3,)`` a point of the plane struck [m, world], normal to
+      ``normal``: then the cap applies only where the point may reach the plane within the next ``REACH_STEPS``
+      control steps (``ImpactModel.halfspace``): a robot far from the surface moves freely.
+    clearance: [m] how far the striking geometry reaches past the point toward the surface (e.g. a capsule's radius
+      and half-length around a body's origin), taken off the distance.
     """
 
     point: str
@@ -64,6 +69,8 @@ class ImpactPoint(NamedTuple):
     margin: float = 1.0
     contact: object = None
     enforce: bool = True
+    surface: object = None
+    clearance: float = 0.0
 
     def resolve(self, mj_model: mujoco.MjModel, robot) -> "ImpactModel":
         """The checked, numeric form for ``robot`` (a ``Robot`` of ``mj_model``). Raises ``ValueError`` naming the
@@ -97,8 +104,23 @@ class ImpactPoint(NamedTuple):
         contact = _impact.check_contact(_impact.PaperContact() if self.contact is None else self.contact)
         if not isinstance(self.enforce, bool):
             raise ValueError(f"ImpactPoint.enforce must be True or False, got {self.enforce!r}")
+        surface = None if self.surface is None else np.asarray(self.surface, np.float64)
+        if surface is not None and not (surface.shape == (3,) and np.all(np.isfinite(surface))):
+            raise ValueError(f"ImpactPoint.surface must be None or a finite 3-vector, got {self.surface!r}")
+        if not (np.isfinite(float(self.clearance)) and float(self.clearance) >= 0):
+            raise ValueError(f"ImpactPoint.clearance must be finite and >= 0, got {self.clearance!r}")
         return ImpactModel(
-            site, body, normal / norm, c_max, float(self.dt_impact), tau, float(self.margin), contact, self.enforce
+            site,
+            body,
+            normal / norm,
+            c_max,
+            float(self.dt_impact),
+            tau,
+            float(self.margin),
+            contact,
+            self.enforce,
+            surface,
+            float(self.clearance),
         )
 
 
@@ -118,9 +140,13 @@ def peak_torque(robot) -> np.ndarray:
     return peak
 
 
+REACH_STEPS = 3  # control steps of approach at the velocity limits within which a surface makes the cap active
+
+
 class ImpactModel(NamedTuple):
     """``ImpactPoint`` resolved against a model: ``site`` (-1: the body's origin), ``body``, the unit ``normal``,
-    ``c_max``, ``dt_impact`` [s], ``tau_imp_max`` ``(n,)`` [N m], ``margin``, ``contact``, ``enforce``."""
+    ``c_max``, ``dt_impact`` [s], ``tau_imp_max`` ``(n,)`` [N m], ``margin``, ``contact``, ``enforce``, ``surface``
+    (``(3,)`` or None), ``clearance`` [m]."""
 
     site: int
     body: int
@@ -131,6 +157,8 @@ class ImpactModel(NamedTuple):
     margin: float
     contact: object
     enforce: bool
+    surface: object
+    clearance: float
 
     def point_position(self, d) -> jax.Array:
         """``(3,)`` the point in the world at ``d``'s kinematics (MJX data after ``fwd_position``)."""
@@ -146,8 +174,8 @@ class ImpactModel(NamedTuple):
         jdot, _ = _mjx_support.jac_dot(sys, d, self.point_position(d), self.body)  # not re-exported by mjx 3.17
         return jnp.swapaxes(jdot[np.asarray(dofs)], 0, 1)
 
-    def halfspace(self, M, J, J_rate, q, v, limits, dt, lower, upper):
-        """``(G (1, n), h (1,), cap, u (n,))``: the cap [m/s] at ``(q, v)`` for pre-impact velocities in
+    def halfspace(self, M, J, J_rate, point, q, v, limits, dt, lower, upper):
+        """``(G (1, n), h (1,), cap, u (n,), active)``: the cap [m/s] at ``(q, v)`` for pre-impact velocities in
         ``v + dt [lower - a_max, upper + a_max]`` within ``±v_max``, and its row ``G a <= h`` on the end-of-step
         speed (module docstring). ``M`` ``(n, n)`` the shielded joints' mass matrix, ``J`` ``(3, n)``, ``J_rate``
         its time derivative: the row reads the end-of-step speed through ``J + dt J_rate`` (the Jacobian where the
@@ -155,7 +183,16 @@ class ImpactModel(NamedTuple):
         approach speed past a 1.4 mm/s cap by up to 8 mm/s). ``u = M^-1 J^T M_eq n̂`` (``J u = n̂``): the joint
         direction that changes only the point's normal acceleration, along which the decision first removes a
         command's excess (``SafetyWrapper``'s task-consistent correction: a projection alone turns the excess into
-        tangential motion, docs/impact.md)."""
+        tangential motion, docs/impact.md).
+
+        ``point`` ``(3,)``: the point's position [m]. With a ``surface`` the row is ``active`` only where the gap to the
+        plane, ``n̂ . (surface - point) - clearance``, is at most ``REACH_STEPS dt S + S^2 / (2 D)`` with
+        ``S = sum_i |n̂ . J_i| v_max_i`` and ``D = sum_i |n̂ . J_i| a_max_i`` (the point's fastest approach and
+        hardest braking along ``normal`` at the joints' limits, at this pose): from farther, the point cannot reach the
+        plane before it has been braked toward the cap from any speed; elsewhere the row is ``0 a <= 1`` (always met).
+        ``REACH_STEPS`` covers this step and the next (this step's end speed is the next step's approach) and the
+        Jacobian's turn; it is a kinematic estimate at the current pose, not a bound (where the bounds or the torques
+        keep some joints from braking, less than ``D`` is available): measured, ``benchmarks/impact_third_party.py``."""
         dtype = jnp.result_type(v)
         dt = jnp.asarray(dt, dtype)
         v_max = jnp.broadcast_to(jnp.asarray(limits.v_max, dtype), v.shape)
@@ -181,7 +218,17 @@ class ImpactModel(NamedTuple):
         cap = cap * jnp.asarray(self.margin, dtype)
         G, h = _impact.speed_cap_halfspace(M, J + dt * J_rate, normal, v, cap, dt)
         u = -_impact.impact_jump(M, J, normal, v, 0.0, 1.0, _impact.DEFAULT_REG).dq_dw
-        return G, h, cap, u
+        active = jnp.ones((), bool)
+        if self.surface is not None:
+            gap = jnp.dot(normal, jnp.asarray(self.surface, dtype) - jnp.asarray(point, dtype)) - self.clearance
+            lever = jnp.abs(normal @ J)
+            S = jnp.sum(lever * v_max)
+            D = jnp.sum(lever * jnp.broadcast_to(jnp.asarray(limits.a_max, dtype), v.shape))
+            reach = REACH_STEPS * dt * S + S * S / (2.0 * jnp.maximum(D, jnp.finfo(dtype).tiny))
+            active = gap <= reach
+            G = jnp.where(active, G, 0.0)
+            h = jnp.where(active, h, 1.0)
+        return G, h, cap, u, active
 
     def c_jacobian(self, model: mujoco.MjModel, data: mujoco.MjData, dofs, rate: bool = False) -> np.ndarray:
         """``(3, n)`` the point's translational Jacobian on the shielded dofs from C MuJoCo (``mj_jac``; its time
@@ -192,11 +239,14 @@ class ImpactModel(NamedTuple):
         return jac[:, dofs]
 
     def c_terms(self, model: mujoco.MjModel, data: mujoco.MjData, dofs) -> tuple:
-        """``(M, J, J_rate)`` for ``halfspace`` from C MuJoCo (float64): the shielded joints' block of ``mj_fullM``
-        (``(n, n)``) and the two Jacobians, at ``data``'s state (after the position and velocity stages)."""
+        """``(M, J, J_rate, point)`` for ``halfspace`` from C MuJoCo (float64): the shielded joints' block of
+        ``mj_fullM`` (``(n, n)``), the two Jacobians and the point, at ``data``'s state (after the position and
+        velocity stages)."""
         M = np.zeros((model.nv, model.nv))
         mujoco.mj_fullM(model, data, M)
-        return M[dofs, :][:, dofs], self.c_jacobian(model, data, dofs), self.c_jacobian(model, data, dofs, True)
+        point = data.site_xpos[self.site] if self.site >= 0 else data.xpos[self.body]
+        J, J_rate = self.c_jacobian(model, data, dofs), self.c_jacobian(model, data, dofs, True)
+        return M[dofs, :][:, dofs], J, J_rate, np.array(point)
 
     def key(self) -> tuple:
         """A hashable digest of every field (a compiled decision's cache key)."""

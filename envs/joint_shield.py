@@ -72,6 +72,7 @@ class Decision(NamedTuple):
     # the impact cap (``impact_point``), ``(...)`` each; 0 without one
     impact_cap: jax.Array  # [m/s] the largest safe approach speed of the impact point
     impact_excess: jax.Array  # [m/s] how far a_safe's end-of-step approach speed exceeds it (no command met it)
+    impact_active: jax.Array  # bool, the cap applied (the point near its surface, or no surface given)
 
 
 class SafeAcceleration:
@@ -126,7 +127,7 @@ class SafeAcceleration:
             jl.check_jerk_condition(placed, self.dt, self.integrator, self.substeps)
 
     def __call__(self, q, v, a_des, a_prev=None, torque=None, impact_terms=None) -> Decision:
-        """``impact_terms``: ``(M, J, J_rate)`` (``(n, n)``, ``(3, n)``, ``(3, n)``) at the state, for the impact cap the shield was
+        """``impact_terms``: ``(M, J, J_rate, point)`` (``(n, n)``, ``(3, n)``, ``(3, n)``, ``(3,)``) at the state, for the impact cap the shield was
         built with (``impact_point``; required then): its row ``G a <= h`` joins the projection (the box QP
         ``jl.solve_box_qp``; with ``torque``, the first solve's rows; where the bounds and the torques leave no
         command meeting it, they hold and the excess is ``Decision.impact_excess``).
@@ -149,7 +150,8 @@ class SafeAcceleration:
             inf = jnp.full(jnp.shape(v), jnp.inf, dtype)
             zero = jnp.zeros(jnp.shape(v)[:-1], dtype)
             ok = jnp.ones(jnp.shape(v), bool)
-            return Decision(a_in, -inf, inf, ok, bad[..., 0], jnp.zeros_like(bad[..., 0]), zero, zero)
+            no = jnp.zeros_like(bad[..., 0])
+            return Decision(a_in, -inf, inf, ok, bad[..., 0], no, zero, zero, no)
         q_eff, lim = self.robot.bound_positions(q, self.dt, self.limits)
         kwargs = dict(method=self.method, integrator=self.integrator, substeps=self.substeps)
         if self.method == "jerk":
@@ -157,10 +159,11 @@ class SafeAcceleration:
         b = jl.acc_bounds(q_eff, v, lim, self.dt, **kwargs)
         rows = None
         cap = jnp.zeros(jnp.shape(v)[:-1], dtype)
+        active = jnp.zeros(jnp.shape(v)[:-1], bool)
         if self.impact is not None:
             if impact_terms is None:
-                raise ValueError("this shield has an impact cap: pass impact_terms=(M, J, J_rate)")
-            G, h, cap, u = self.impact.halfspace(*impact_terms, q_eff, v, lim, self.dt, b.lower, b.upper)
+                raise ValueError("this shield has an impact cap: pass impact_terms=(M, J, J_rate, point)")
+            G, h, cap, u, active = self.impact.halfspace(*impact_terms, q_eff, v, lim, self.dt, b.lower, b.upper)
             rows = (G, h)
         measured, a_free = rows, a_in
         if rows is not None and not self.impact.enforce:
@@ -188,7 +191,7 @@ class SafeAcceleration:
         if measured is not None:
             G, h = measured
             excess = jnp.maximum(jnp.einsum("...n,...n->...", G[..., 0, :], a_safe) - h[..., 0], 0.0)
-        return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict, cap, excess)
+        return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict, cap, excess, active)
 
     def _torque_space(self, a_in, b, terms, torque, impact_rows=None, a_free=None):
         """The torque-space decision (see ``__call__``) and its conflict rule; returns ``(a_safe, conflict)``.

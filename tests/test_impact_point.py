@@ -24,7 +24,7 @@ from jaxlimits.envs.adversarial import shield_rollout
 from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.brax_shield import _mj_model_of
 from jaxlimits.envs.gym import JointLimitShieldWrapper
-from jaxlimits.envs.impact_point import peak_torque
+from jaxlimits.envs.impact_point import REACH_STEPS, peak_torque
 from jaxlimits.envs.joint_shield import SafeAcceleration
 from jaxlimits.envs.robot import Robot
 
@@ -55,14 +55,14 @@ def _states(mjm, robot, rng, count):
 
 
 def _c_terms(mjm, robot, imp, d):
-    """``(M, J, J_rate)`` of the shielded joints from C MuJoCo (float64), the point the body's origin."""
+    """``(M, J, J_rate, point)`` of the shielded joints from C MuJoCo (float64), the point the body's origin."""
     dofs = robot.dof_adr
     M = np.zeros((mjm.nv, mjm.nv))
     mujoco.mj_fullM(mjm, d, M)
     jacp, jdot = np.zeros((3, mjm.nv)), np.zeros((3, mjm.nv))
     mujoco.mj_jacBody(mjm, d, jacp, None, imp.body)
     mujoco.mj_jacDot(mjm, d, jdot, None, d.xpos[imp.body], imp.body)
-    return M[np.ix_(dofs, dofs)], jacp[:, dofs], jdot[:, dofs]
+    return M[np.ix_(dofs, dofs)], jacp[:, dofs], jdot[:, dofs], d.xpos[imp.body].copy()
 
 
 def test_the_point_and_its_jacobians_are_c_mujocos(pusher_robot):
@@ -82,7 +82,7 @@ def test_the_point_and_its_jacobians_are_c_mujocos(pusher_robot):
 
     for d in _states(mjm, robot, np.random.default_rng(0), 4):
         J, Jd = terms(mjx.put_data(mjm, d))
-        _, J_c, Jd_c = _c_terms(mjm, robot, imp, d)
+        _, J_c, Jd_c, _ = _c_terms(mjm, robot, imp, d)
         np.testing.assert_allclose(J, J_c, atol=2e-5)
         np.testing.assert_allclose(Jd, Jd_c, atol=2e-4)
 
@@ -125,7 +125,8 @@ def test_the_decision_is_the_projection_onto_the_bounds_and_the_caps_row(pusher_
         args = (jnp.asarray(q, jnp.float32), jnp.asarray(v, jnp.float32), jnp.asarray(a_des, jnp.float32))
         dec = decide(*args, terms)
         q_eff, lim = robot.bound_positions(args[0], enforced.dt, enforced.limits)
-        G, h, cap, u = imp.halfspace(*terms, q_eff, args[1], lim, enforced.dt, dec.lower, dec.upper)
+        G, h, cap, u, active = imp.halfspace(*terms, q_eff, args[1], lim, enforced.dt, dec.lower, dec.upper)
+        assert bool(active) and bool(dec.impact_active)  # no surface: always
         g, h, u = np.asarray(G[0], np.float64), float(h[0]), np.asarray(u, np.float64)
         # J u = n̂ up to the regularisation of J M^-1 J^T (jaxlimits.impact.DEFAULT_REG)
         np.testing.assert_allclose(np.asarray(terms[1], np.float64) @ u, imp.normal, atol=2e-2)
@@ -144,6 +145,48 @@ def test_the_decision_is_the_projection_onto_the_bounds_and_the_caps_row(pusher_
     assert binding >= 8, binding
 
 
+def test_a_surface_makes_the_cap_apply_only_within_reach_of_it(pusher_robot):
+    """With ``surface`` the row applies only where the point can reach the plane before it can be braked
+    (``ImpactModel.halfspace``): a table 1 m beyond that leaves the decision the clip (no excess), the plane through the point itself
+    applies the cap as without a surface; ``clearance`` is taken off the gap."""
+    mjm, robot, imp = pusher_robot
+    (d,) = _states(mjm, robot, np.random.default_rng(2), 1)
+    q, v = (jnp.asarray(x, jnp.float32) for x in (d.qpos[robot.qpos_adr], d.qvel[robot.dof_adr]))
+    terms = tuple(jnp.asarray(x, jnp.float32) for x in _c_terms(mjm, robot, imp, d))
+    point = np.asarray(terms[3], np.float64)
+    # every joint accelerating the point down, into the surface (normal -z)
+    a_des = jnp.asarray(-20.0 * np.asarray(robot.limits.a_max) * np.sign(np.asarray(terms[1])[2]), jnp.float32)
+    lever = np.abs(np.asarray(terms[1])[2])  # the normal is -z
+    S = float(lever @ np.broadcast_to(robot.limits.v_max, (robot.n,)))
+    D = float(lever @ np.broadcast_to(robot.limits.a_max, (robot.n,)))
+    reach = REACH_STEPS * 0.05 * S + S * S / (2.0 * D)
+
+    def decide(surface, clearance=0.0):
+        model = imp._replace(surface=surface, clearance=clearance)
+        return jax.jit(lambda *a: SafeAcceleration(robot, 5, impact=model)(*a[:3], impact_terms=a[3:]))(
+            q, v, a_des, *terms
+        )
+
+    everywhere = decide(None)
+    assert bool(everywhere.impact_active) and float(everywhere.impact_excess) == 0.0
+    far = decide(point - [0.0, 0.0, reach + 1.0])
+    assert not bool(far.impact_active) and float(far.impact_excess) == 0.0
+    np.testing.assert_allclose(far.a_safe, np.clip(a_des, far.lower, far.upper), atol=1e-5)
+    assert not np.allclose(far.a_safe, everywhere.a_safe, atol=1e-3)  # the cap bound the command
+    at = decide(point)
+    assert bool(at.impact_active)
+    np.testing.assert_allclose(at.a_safe, everywhere.a_safe, atol=1e-5)
+    q_eff, lim = robot.bound_positions(q, 0.05, robot.limits)
+
+    def active(surface, clearance):
+        model = imp._replace(surface=np.asarray(surface), clearance=clearance)
+        return bool(model.halfspace(*terms, q_eff, v, lim, 0.05, at.lower, at.upper)[4])
+
+    assert active(point - [0.0, 0.0, 0.5 * reach + 1.0], 1.0)  # a gap of half the reach
+    assert not active(point - [0.0, 0.0, 1.5 * reach + 1.0], 1.0)
+
+
+@pytest.mark.extended  # an MJX compile of the capped pusher (~1-1.5 min); benchmarks/impact_third_party.py at scale
 def test_brax_pusher_wrist_never_exceeds_the_cap_under_adversarial_policies():
     """Brax pusher with the cap on its wrist's downward speed: in 3 200 adversarial env-steps no step's approach
     speed exceeds the cap of the step before and its own (``shield_rollout``'s ``over_cap``), strikes included, and no
@@ -175,6 +218,10 @@ def test_bad_impact_input_is_an_eager_error_naming_it(pusher_robot):
         POINT._replace(margin=1.5).resolve(mjm, robot)
     with pytest.raises(ValueError, match="tau_imp_max.*r_shoulder_pan_joint"):
         POINT._replace(tau_imp_max=[-1.0] + [1.0] * 6).resolve(mjm, robot)
+    with pytest.raises(ValueError, match="surface"):
+        POINT._replace(surface=(0.0, np.inf, 0.0)).resolve(mjm, robot)
+    with pytest.raises(ValueError, match="clearance"):
+        POINT._replace(surface=(0.0, 0.0, -0.3), clearance=-0.1).resolve(mjm, robot)
     with pytest.raises(ValueError, match="enforce"):
         POINT._replace(enforce=1).resolve(mjm, robot)
     with pytest.raises(ValueError, match="restitution|c_min|c_max"):
