@@ -55,8 +55,8 @@ class ImpactPoint(NamedTuple):
     enforce: ``True``: the cap is a row of the decision; ``False``: only measured (the cap and the approach speed are
       reported, the decision is the one without it: what a robot's strikes would be, against the cap).
     surface: ``None`` (the cap applies everywhere) or ``(3,)`` a point of the plane struck [m, world], normal to
-      ``normal``: then the cap applies only where the point may reach the plane within the next ``REACH_STEPS``
-      control steps (``ImpactModel.halfspace``): a robot far from the surface moves freely.
+      ``normal``: then the cap applies only where the point may reach the plane before it can be braked toward the
+      cap (``ImpactModel.halfspace``): a robot far from the surface moves freely.
     clearance: [m] how far the striking geometry reaches past the point toward the surface (e.g. a capsule's radius
       and half-length around a body's origin), taken off the distance.
     """
@@ -96,8 +96,12 @@ class ImpactPoint(NamedTuple):
             raise ValueError(f"ImpactPoint.dt_impact must be > 0, got {self.dt_impact!r}")
         if not 0.0 < float(self.margin) <= 1.0:
             raise ValueError(f"ImpactPoint.margin must be in (0, 1], got {self.margin!r}")
-        tau = peak_torque(robot) if self.tau_imp_max is None else self.tau_imp_max
-        tau = np.broadcast_to(np.asarray(tau, np.float64), (robot.n,)).copy()
+        tau = np.asarray(peak_torque(robot) if self.tau_imp_max is None else self.tau_imp_max, np.float64)
+        if tau.shape not in ((), (robot.n,)):
+            raise ValueError(
+                f"ImpactPoint.tau_imp_max must be a scalar or ({robot.n},) per joint, got shape {tau.shape}"
+            )
+        tau = np.broadcast_to(tau, (robot.n,)).copy()
         if not (np.all(np.isfinite(tau)) and np.all(tau > 0)):
             bad = {robot.names[i]: float(tau[i]) for i in np.flatnonzero(~(np.isfinite(tau) & (tau > 0)))}
             raise ValueError(f"ImpactPoint.tau_imp_max must be finite and > 0 per joint, got {bad}")

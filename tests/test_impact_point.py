@@ -222,6 +222,8 @@ def test_bad_impact_input_is_an_eager_error_naming_it(pusher_robot):
         POINT._replace(surface=(0.0, np.inf, 0.0)).resolve(mjm, robot)
     with pytest.raises(ValueError, match="clearance"):
         POINT._replace(surface=(0.0, 0.0, -0.3), clearance=-0.1).resolve(mjm, robot)
+    with pytest.raises(ValueError, match=r"tau_imp_max must be a scalar or \(7,\)"):
+        POINT._replace(tau_imp_max=[1.0, 2.0]).resolve(mjm, robot)
     with pytest.raises(ValueError, match="enforce"):
         POINT._replace(enforce=1).resolve(mjm, robot)
     with pytest.raises(ValueError, match="restitution|c_min|c_max"):
