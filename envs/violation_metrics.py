@@ -5,7 +5,9 @@ Per step, for every ``VIOLATION_KEYS`` kind: ``count/<kind>`` (1.0 when the step
 ``violation/<kind>`` (the excess, from ``state.info["violation"]``; ``acceleration``, ``jerk`` and
 ``impact``, which ``JointLimitShield`` does not measure, are 0); and ``intervention``, ``viable``,
 ``nonfinite_action``, ``torque_box_conflict`` from the shield's ``shield/intervention``,
-``shield/nonviable``, ``shield/nonfinite``, ``shield/torque_conflict``. Nothing else changes.
+``shield/nonviable``, ``shield/nonfinite``, ``shield/torque_conflict``; with an impact point (``JointLimitShield(
+impact=)``) ``impact_cap`` and ``impact_infeasible`` (``SafetyWrapper``'s names) from ``shield/impact_cap`` and
+``shield/impact_infeasible``. Nothing else changes.
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ def _with_metrics(state: State) -> State:
     for name, source in _RENAMED.items():
         metrics[name] = jnp.asarray(state.metrics[source], jnp.float32)
     metrics["viable"] = 1.0 - jnp.asarray(state.metrics["shield/nonviable"], jnp.float32)
+    for name in ("impact_cap", "impact_infeasible"):
+        if f"shield/{name}" in state.metrics:
+            metrics[name] = jnp.asarray(state.metrics[f"shield/{name}"], jnp.float32)
     return state.replace(metrics=metrics)
 
 

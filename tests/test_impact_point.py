@@ -19,7 +19,7 @@ with warnings.catch_warnings():
     import brax.envs
 import gymnasium
 
-from jaxlimits.envs import ImpactPoint, JointLimitShield
+from jaxlimits.envs import ImpactPoint, JointLimitShield, ViolationMetrics
 from jaxlimits.envs.adversarial import shield_rollout
 from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.brax_shield import _mj_model_of
@@ -276,3 +276,12 @@ def test_gymnasium_pusher_wrist_never_exceeds_the_cap_where_it_can_be_met():
     cap_m, speed_m, *_ = _gym_run(False)
     over_m = speed_m[1:] > 1.01 * np.maximum(cap_m[1:], cap_m[:-1]) + 1e-3
     assert over_m.sum() > 50, over_m.sum()
+
+
+def test_the_trainers_metric_names_carry_the_cap():
+    """``ViolationMetrics`` (how ``jaxlimits train`` reads a ``JointLimitShield``) passes the cap on under
+    ``SafetyWrapper``'s names, ``impact_cap`` and ``impact_infeasible`` (traced only: ``jax.eval_shape``)."""
+    with pytest.warns(UserWarning, match="quantile"):
+        env = ViolationMetrics(JointLimitShield(_pusher(), v_max=2.0, impact=POINT))
+    metrics = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).metrics
+    assert {"impact_cap", "impact_infeasible", "shield/impact_active"} <= set(metrics)
