@@ -74,7 +74,8 @@ def shield_rollout(
     ``k`` > 0 for ``k`` in position, velocity, torque, saturated, nonfinite, nonviable, disturbance),
     ``max/<k>`` for position, velocity, torque, accel_error, and ``undisturbed/count/position``,
     ``undisturbed/count/velocity``, ``undisturbed/max/accel_error``. With an impact point (``impact=``, enforced
-    or measured): ``count/impact_infeasible``; ``count/over_cap`` (steps no contact disturbed whose approach speed
+    or measured): ``count/impact_active`` (steps the cap applied: all without ``ImpactPoint.surface``),
+    ``count/impact_infeasible``; ``count/over_cap`` (steps no contact disturbed whose approach speed
     exceeds the cap of the step before and its own, ``max(cap_t-1, cap_t)``, by over 1 % + 1 mm/s: the step before's
     cap bounds its end speed, this step's its own; judged only where both steps applied and met their caps and not
     on a restart's step); ``count/strikes`` (steps where a contact disturbance begins) and ``max/strike_speed`` [m/s]
@@ -113,6 +114,7 @@ def shield_rollout(
                 above = judged & (speed > 1.01 * jnp.maximum(prev["shield/impact_cap"], cap) + 1e-3)
                 strike = (m["disturbance"] > 0) & (prev["shield/disturbance"] == 0) & (t % episode != 0)
                 extra = {
+                    "count/impact_active": acc["count/impact_active"] + (now["shield/impact_active"] > 0),
                     "count/impact_infeasible": acc["count/impact_infeasible"] + (now["shield/impact_infeasible"] > 0),
                     "count/over_cap": acc["count/over_cap"] + (above & (m["disturbance"] == 0)),
                     "count/strikes": acc["count/strikes"] + strike,
@@ -143,6 +145,7 @@ def shield_rollout(
         )
         if impact:
             acc0.update({k: zi for k in ("count/impact_infeasible", "count/over_cap", "count/strikes")})
+            acc0["count/impact_active"] = zi
             acc0.update({"count/strike_over_cap": zi, "max/impact_speed": zf, "max/strike_speed": zf})
         (_, _, acc), _ = jax.lax.scan(body, (states0, jnp.zeros((batch,), bool), acc0), jnp.arange(steps))
         return acc

@@ -190,10 +190,12 @@ class ImpactModel(NamedTuple):
         tangential motion, docs/impact.md).
 
         ``point`` ``(3,)``: the point's position [m]. With a ``surface`` the row is ``active`` only where the gap to the
-        plane, ``n̂ . (surface - point) - clearance``, is at most ``REACH_STEPS dt S + S^2 / (2 D)`` with
-        ``S = sum_i |n̂ . J_i| v_max_i`` and ``D = sum_i |n̂ . J_i| a_max_i`` (the point's fastest approach and
-        hardest braking along ``normal`` at the joints' limits, at this pose): from farther, the point cannot reach the
-        plane before it has been braked toward the cap from any speed; elsewhere the row is ``0 a <= 1`` (always met).
+        plane, ``n̂ . (surface - point) - clearance``, is at most ``REACH_STEPS dt w + w^2 / (2 D)`` with
+        ``w = min(S, max(n̂ . J v, 0) + REACH_STEPS dt D)``, ``S = sum_i |n̂ . J_i| v_max_i`` and
+        ``D = sum_i |n̂ . J_i| a_max_i`` (the point's fastest approach and hardest braking along ``normal`` at the
+        joints' limits, at this pose; ``w`` the fastest approach it can reach from its speed now within
+        ``REACH_STEPS`` steps): from farther, it cannot reach the plane within those steps, nor before it has been
+        braked toward the cap after them; elsewhere the row is ``0 a <= 1`` (always met).
         ``REACH_STEPS`` covers this step and the next (this step's end speed is the next step's approach) and the
         Jacobian's turn; it is a kinematic estimate at the current pose, not a bound (where the bounds or the torques
         keep some joints from braking, less than ``D`` is available): measured, ``benchmarks/impact_third_party.py``."""
@@ -228,7 +230,9 @@ class ImpactModel(NamedTuple):
             lever = jnp.abs(normal @ J)
             S = jnp.sum(lever * v_max)
             D = jnp.sum(lever * jnp.broadcast_to(jnp.asarray(limits.a_max, dtype), v.shape))
-            reach = REACH_STEPS * dt * S + S * S / (2.0 * jnp.maximum(D, jnp.finfo(dtype).tiny))
+            # the fastest approach the point can have within REACH_STEPS steps from its speed now, then its braking
+            w = jnp.minimum(S, jnp.maximum(jnp.dot(normal, J @ v), 0.0) + REACH_STEPS * dt * D)
+            reach = REACH_STEPS * dt * w + w * w / (2.0 * jnp.maximum(D, jnp.finfo(dtype).tiny))
             active = gap <= reach
             G = jnp.where(active, G, 0.0)
             h = jnp.where(active, h, 1.0)

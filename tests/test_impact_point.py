@@ -159,7 +159,8 @@ def test_a_surface_makes_the_cap_apply_only_within_reach_of_it(pusher_robot):
     lever = np.abs(np.asarray(terms[1])[2])  # the normal is -z
     S = float(lever @ np.broadcast_to(robot.limits.v_max, (robot.n,)))
     D = float(lever @ np.broadcast_to(robot.limits.a_max, (robot.n,)))
-    reach = REACH_STEPS * 0.05 * S + S * S / (2.0 * D)
+    w = min(S, max(float(-np.asarray(terms[1])[2] @ np.asarray(v)), 0.0) + REACH_STEPS * 0.05 * D)
+    reach = REACH_STEPS * 0.05 * w + w * w / (2.0 * D)
 
     def decide(surface, clearance=0.0):
         model = imp._replace(surface=surface, clearance=clearance)
