@@ -363,8 +363,7 @@ class JointLimitShield(Wrapper):
         if self.impact is not None:
             rec["impact_cap"] = dec.impact_cap
             rec["impact_active"] = dec.impact_active
-            # beyond the float32 roundoff of the row (1e-4 of the cap, 1e-5 m/s)
-            rec["impact_infeasible"] = dec.impact_excess > 1e-4 * dec.impact_cap + 1e-5
+            rec["impact_infeasible"] = SafeAcceleration.impact_unmet(dec)
         self._outputs = (rec, dec, a_des)
         return _brax_state(self._base.sys, d_end)
 

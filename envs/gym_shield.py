@@ -119,7 +119,7 @@ def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bo
     """``(SafeAcceleration, compiled)``: the decision for ``robot`` over ``n_frames`` substeps, jitted and compiled
     ahead of time for float32 ``(n,)`` inputs (``JointLimitShieldWrapper._decider``); ``impact`` an
     ``impact_point.ImpactModel`` (then four more inputs, ``M`` ``(n, n)``, ``J`` and ``J_rate`` ``(3, n)``, the point
-    ``(3,)``, and three more outputs, the cap, the excess and whether it applied)."""
+    ``(3,)``, and three more outputs, the cap, whether it was unmet and whether it applied)."""
     decide = SafeAcceleration(robot, n_frames, method, impact=impact)
 
     def packed(q, v, a_des, a_prev, M_ss, f_s, tau_lo, tau_hi, *impact_terms):
@@ -135,7 +135,8 @@ def _compile_decider(robot: Robot, n_frames: int, method: str, torque_limits: bo
             dec.conflict.astype(f32)[None],
         ]
         if impact is not None:
-            parts += [x.astype(f32)[None] for x in (dec.impact_cap, dec.impact_excess, dec.impact_active)]
+            unmet = SafeAcceleration.impact_unmet(dec)
+            parts += [x.astype(f32)[None] for x in (dec.impact_cap, unmet, dec.impact_active)]
         return jnp.concatenate(parts)
 
     spec = jax.ShapeDtypeStruct((robot.n,), jnp.float32)
@@ -244,9 +245,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         self.robot = rob = Robot.from_model(base.model, joints, v_max, a_max, j_max, **robot_kwargs)
         self.actuation = CActuation(rob, base.model)
         self.method = method
+        # with method "none" SafeAcceleration refuses the cap (the decider is built below)
         self.impact = None if impact is None else impact.resolve(base.model, rob)
-        if self.impact is not None and method == "none":
-            raise ValueError("an impact cap needs the bounds of a method: 'viability', 'jerk' or 'naive', not 'none'")
         self._base = base
         self._robot_key = rob.fingerprint()
         self._deciders = {}  # n_frames -> (SafeAcceleration, compiled XLA executable); shared: _SHARED_DECIDERS
@@ -437,9 +437,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             }
         )
         if imp is not None:
-            cap, excess, active = float(out[4 * n + 2]), float(out[4 * n + 3]), bool(out[4 * n + 4] > 0.5)
-            # beyond the float32 roundoff of the row (1e-4 of the cap, 1e-5 m/s)
-            infeasible = excess > 1e-4 * cap + 1e-5
+            cap, infeasible, active = float(out[4 * n + 2]), bool(out[4 * n + 3] > 0.5), bool(out[4 * n + 4] > 0.5)
             self._records[-1].update(
                 impact_cap=cap, impact_infeasible=infeasible, impact_speed=speed, impact_active=active
             )

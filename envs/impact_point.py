@@ -144,6 +144,27 @@ def peak_torque(robot) -> np.ndarray:
     return peak
 
 
+def pre_impact_velocities(v, lower, upper, dt, a_max, v_max):
+    """``(lo, hi)`` ``(..., n)``, not sorted: the joint velocities a strike may meet, ``v + dt [lower - a_max, upper +
+    a_max]`` (this step's box and what the next step adds: a strike early in the next step comes at this step's end
+    velocity, and the rest of that step adds at most ``dt a_max``) clipped to ``±v_max``: the next step's bounds keep
+    the velocity there, and a box reaching past it would read as (17) already violated at ``w = 0`` and cap the speed
+    at 0 whenever a joint runs near ``v_max``. Shared by ``ImpactModel.halfspace`` and ``SafetyWrapper.impact_cap``."""
+    reach = jnp.broadcast_to(dt * a_max, jnp.shape(v))
+    return jnp.maximum(v + dt * lower - reach, -v_max), jnp.minimum(v + dt * upper + reach, v_max)
+
+
+def remove_excess(a, g, h, u):
+    """``a`` ``(..., n)`` with its excess over the row ``g . a <= h`` (``g`` ``(..., n)``, ``h`` ``(..., 1)``) removed
+    along ``u`` (where ``g . u > 1e-6``; elsewhere ``a`` as it is): the task-consistent correction before the
+    projection, ``u = M^-1 J^T M_eq n̂`` changing only the point's normal acceleration (a projection alone turns the
+    excess into tangential motion, docs/impact.md). Shared by ``SafeAcceleration`` and ``SafetyWrapper``."""
+    gu = jnp.sum(g * u, axis=-1, keepdims=True)
+    excess = jnp.maximum(jnp.sum(g * a, axis=-1, keepdims=True) - h, 0.0)
+    ok = gu > 1e-6
+    return a - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
+
+
 REACH_STEPS = 3  # control steps of approach at the velocity limits within which a surface makes the cap active
 
 
@@ -202,9 +223,7 @@ class ImpactModel(NamedTuple):
         dtype = jnp.result_type(v)
         dt = jnp.asarray(dt, dtype)
         v_max = jnp.broadcast_to(jnp.asarray(limits.v_max, dtype), v.shape)
-        reach = dt * jnp.broadcast_to(jnp.asarray(limits.a_max, dtype), v.shape)
-        lo = jnp.maximum(v + dt * lower - reach, -v_max)
-        hi = jnp.minimum(v + dt * upper + reach, v_max)
+        lo, hi = pre_impact_velocities(v, lower, upper, dt, jnp.asarray(limits.a_max, dtype), v_max)
         normal = jnp.asarray(self.normal, dtype)
         cap = _impact.impact_speed_cap(
             M,

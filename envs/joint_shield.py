@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxlimits as jl
+from jaxlimits.envs.impact_point import remove_excess
 from jaxlimits.envs.robot import Robot
 
 METHODS = ("viability", "jerk", "naive", "none")
@@ -168,12 +169,8 @@ class SafeAcceleration:
         measured, a_free = rows, a_in
         if rows is not None and not self.impact.enforce:
             rows = None  # measured only: the excess below is what the decision without the cap gives
-        if rows is not None:  # the command's excess removed along u first (ImpactModel.halfspace)
-            g = G[..., 0, :]
-            gu = jnp.einsum("...n,...n->...", g, u)[..., None]
-            excess = jnp.maximum(jnp.einsum("...n,...n->...", g, a_in)[..., None] - h, 0.0)
-            ok = gu > 1e-6
-            a_in = a_in - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
+        if rows is not None:  # the command's excess removed along u first
+            a_in = remove_excess(a_in, G[..., 0, :], h, u)
         if torque is None and rows is None:
             a_safe = jl.project_box(a_in, b.lower, b.upper, gradient=self.gradient)
             conflict = jnp.zeros(jnp.shape(v)[:-1], bool)
@@ -294,6 +291,12 @@ class SafeAcceleration:
         use_full = ~fail_full[..., None]
         a_safe = jnp.where(use_full, jnp.clip(jnp.where(use_full, a_full, a_c), b.lower, b.upper), a_hard)
         return a_safe, fail_full & fail_hard
+
+    @staticmethod
+    def impact_unmet(dec: Decision):
+        """``(...)`` bool: ``dec.a_safe`` leaves the impact cap's row beyond its float32 roundoff (1e-4 of the cap,
+        1e-5 m/s): no command inside the bounds and the torques met the cap (``impact_infeasible``)."""
+        return dec.impact_excess > 1e-4 * dec.impact_cap + 1e-5
 
     @staticmethod
     def beyond_bounds(dec: Decision):

@@ -47,6 +47,7 @@ import jaxlimits as jl
 import jaxlimits.impact as _impact
 import jaxlimits.torque as _torque
 from jaxlimits.envs.arm import ArmReach, State, Wrapper
+from jaxlimits.envs.impact_point import pre_impact_velocities, remove_excess
 
 METHODS = ("none", "clip", "naive", "viability", "jerk")
 # the derivative a differentiating learner (Brax APG) sees through the shield: the projection's own two
@@ -202,12 +203,9 @@ class SafetyWrapper(Wrapper):
         n = self.env.n
         lead = q.shape[:-1]
         dt = jnp.float32(self.env.dt)
-        reach = jnp.broadcast_to(dt * jnp.asarray(self.limits.a_max, jnp.float32), v.shape)
         v_max = jnp.broadcast_to(jnp.asarray(self.limits.v_max, jnp.float32), v.shape)
-        # the next step's bounds keep the velocity within v_max: a box reaching past it would read as (17) already
-        # violated at w = 0 and cap the speed at 0 whenever a joint runs near v_max
-        lo = jnp.maximum(v + dt * lower - reach, -v_max).reshape((-1, n))
-        hi = jnp.minimum(v + dt * upper + reach, v_max).reshape((-1, n))
+        lo, hi = pre_impact_velocities(v, lower, upper, dt, jnp.asarray(self.limits.a_max, jnp.float32), v_max)
+        lo, hi = lo.reshape((-1, n)), hi.reshape((-1, n))
         if o["anticipate"]:  # a joint braked toward rest later approaches at any speed between now and rest
             lo, hi = jnp.minimum(lo, 0.0), jnp.maximum(hi, 0.0)
         qf, vf = q.reshape((-1, n)), v.reshape((-1, n))
@@ -318,11 +316,7 @@ class SafetyWrapper(Wrapper):
         # task-consistent correction first: remove the excess approach speed along u = M^-1 J^T M_eq n̂
         # (J u = n̂: only the normal end-effector acceleration changes, not the tangential one), then
         # the exact projection onto {box, halfspace} (a no-op when the corrected command is inside)
-        g = G[..., 0, :]
-        gu = jnp.sum(g * u, axis=-1, keepdims=True)
-        excess = jnp.maximum(jnp.sum(g * a_in, axis=-1, keepdims=True) - h, 0.0)
-        ok = gu > 1e-6
-        a_task = a_in - jnp.where(ok, excess / jnp.where(ok, gu, 1.0), 0.0) * u
+        a_task = remove_excess(a_in, G[..., 0, :], h, u)
         res = jl.solve_box_qp(a_task, b.lower, b.upper, G=G, h=h, gradient=gradient)
         extra = dict(extra, impact_cap=cap, impact_infeasible=res.infeasible.astype(jnp.float32))
         return res.x, b, extra
