@@ -23,6 +23,8 @@ _EXPORTS = {
     "Reach": "jaxlimits.envs.reach",
     "make_servo_panda_reach": "jaxlimits.envs.reach",
     "make_servo_panda_front_reach": "jaxlimits.envs.reach",
+    "make_planar_robot_reach": "jaxlimits.envs.reach",
+    "AccelerationActions": "jaxlimits.envs.acceleration_actions",
     "ViolationMetrics": "jaxlimits.envs.violation_metrics",
     "make_ur5e_reach": "jaxlimits.envs.reach",
     "shield_rollout": "jaxlimits.envs.adversarial",

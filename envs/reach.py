@@ -9,7 +9,10 @@ The task knows nothing of the limits. The action ``[-1, 1]^nu`` means (``action`
   target joint position inside the joint range, as in MuJoCo Playground; for a motor, a torque);
 * ``"servo_offset"`` (position servos only): the servo's target is the joint's current position plus
   ``action * forcerange / kp`` [rad or m], so ``|action| = 1`` asks the servo's whole force at rest and
-  the policy commands a direction of motion, not a place (``servo_offset_scale``).
+  the policy commands a direction of motion, not a place (``servo_offset_scale``);
+* ``"acceleration"``: a joint acceleration ``action * acceleration_scale`` [rad/s^2], ``ArmReach``'s action space on
+  any robot whose every joint has its own actuator: the ``ctrl`` that asks the integrator for it at the step's start
+  state (``acceleration_actions.AccelerationActions``; the scale defaults to the MJCF's ``jaxlimits_a_max``).
 
 Either way ``ctrl`` is held over ``n_frames`` substeps by ``pipeline_step``, where a
 ``JointLimitShield`` takes over. Reward ``-d`` (``d = |ee - target|`` [m]), plus
@@ -31,6 +34,7 @@ import numpy as np
 from mujoco import mjx
 
 from jaxlimits.envs import mjx_stages
+from jaxlimits.envs.acceleration_actions import AccelerationActions
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -40,7 +44,7 @@ with warnings.catch_warnings():
 from jaxlimits.envs.arm import PANDA_FRONT_BOX, _mjx_tracing, damped_ls_step, reach_reward
 
 ASSETS = pathlib.Path(__file__).parent / "assets"
-ACTIONS = ("ctrl", "servo_offset")
+ACTIONS = ("ctrl", "servo_offset", "acceleration")
 STARTS = ("random", "home")
 TARGETS = ("reachable", "box")
 
@@ -79,7 +83,9 @@ class Reach(PipelineEnv):
         per control step.
       reset_margin: random configurations (starts, reachable targets) are uniform in each limited
         joint's range shrunk by this fraction at both ends (unlimited joints: in [-pi, pi]).
-      action: ``"ctrl"`` or ``"servo_offset"`` (module docstring).
+      action: ``"ctrl"``, ``"servo_offset"`` or ``"acceleration"`` (module docstring).
+      acceleration_scale: [rad/s^2 or m/s^2] per unit action for ``action="acceleration"``, scalar or per actuator
+        (default: the MJCF custom numeric ``jaxlimits_a_max``).
       start: ``"random"`` (uniform, as above) or ``"home"`` (the keyframe ``home`` with every joint scaled
         by ``U(home_scale)``, clipped to the shrunk ranges: Isaac Lab's ``reset_joints_by_scale``).
       target: ``"reachable"`` (the ``ee`` position of a random configuration) or ``"box"`` (uniform in
@@ -102,6 +108,7 @@ class Reach(PipelineEnv):
         target_box=None,
         ik_observation: bool = False,
         precision_reward: float = 0.0,
+        acceleration_scale=None,
     ):
         for field, value, allowed in (
             ("action", action, ACTIONS),
@@ -138,6 +145,10 @@ class Reach(PipelineEnv):
         if action == "servo_offset":
             self._offset_scale = jnp.asarray(servo_offset_scale(mjm), jnp.float32)
             self._servo_qadr = jnp.asarray(mjm.jnt_qposadr[mjm.actuator_trnid[:, 0]])
+        if action == "acceleration":
+            self._accelerations = AccelerationActions(sys, acceleration_scale)
+        elif acceleration_scale is not None:
+            raise ValueError(f"acceleration_scale is for action='acceleration', not {action!r}")
         self.start_mode, self.target_mode = start, target
         if start == "home":
             key = mujoco.mj_name2id(mjm, mujoco.mjtObj.mjOBJ_KEY, "home")
@@ -187,10 +198,13 @@ class Reach(PipelineEnv):
         dist = jnp.linalg.norm(ps.site_xpos[self._site] - target)
         return State(ps, self._obs(ps, target), -dist, zero, {"distance": dist}, {"target": target})
 
+    @_mjx_tracing
     def ctrl(self, pipeline_state, action: jax.Array) -> jax.Array:
         """The actuators' ``ctrl`` ``(nu,)`` for ``action`` ``(nu,)`` at ``pipeline_state`` (module docstring)."""
         if self.action_mode == "servo_offset":
             ctrl = pipeline_state.qpos[self._servo_qadr] + action * self._offset_scale
+        elif self.action_mode == "acceleration":
+            ctrl = self._accelerations.ctrl(self.sys, pipeline_state, action)
         else:
             ctrl = self._ctrl_mid + action * self._ctrl_half
         return ctrl.astype(pipeline_state.qpos.dtype)  # the physics' dtype (float64 under jax_enable_x64)
@@ -216,6 +230,13 @@ class Reach(PipelineEnv):
 def make_servo_panda_reach(**kwargs) -> Reach:
     """Reach with the shipped position-servo Panda (``assets/panda_servo.xml``), 5 substeps of 2 ms."""
     return Reach(ASSETS / "panda_servo.xml", **kwargs)
+
+
+def make_planar_robot_reach(**kwargs) -> Reach:
+    """The project's planar 3-link arm (``assets/planar3.xml``, motors, Euler) as a robot under the one shield:
+    ``ArmReach``'s planar reach (5 substeps of 2 ms, reachable targets) with joint-acceleration actions scaled by
+    its ``jaxlimits_a_max`` (``action="acceleration"`` by default)."""
+    return Reach(ASSETS / "planar3.xml", **{"action": "acceleration", **kwargs})
 
 
 def make_servo_panda_front_reach(**kwargs) -> Reach:

@@ -177,6 +177,7 @@ SLOWEST_FILES_FIRST = (  # by measured duration (a full run's per-test times, `m
     "test_bounds_exact.py",
     "test_multiprocess_eval.py",
     "test_impact_point.py",
+    "test_acceleration_actions.py",
     "test_servo_quantum.py",
     "test_envs_gym.py",
     "test_timescale.py",

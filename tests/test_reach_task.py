@@ -18,7 +18,7 @@ import pytest
 
 
 from jaxlimits.envs.arm import ASSETS, PANDA_FRONT_BOX, PRECISION_SCALE, VIOLATION_KEYS, State, damped_ls_step
-from jaxlimits.envs.reach import Reach, make_servo_panda_front_reach, servo_offset_scale
+from jaxlimits.envs.reach import Reach, make_planar_robot_reach, make_servo_panda_front_reach, servo_offset_scale
 from jaxlimits.envs.violation_metrics import _with_metrics
 from jaxlimits.training import config
 
@@ -35,7 +35,7 @@ def resets(front):
     return jax.jit(jax.vmap(front.reset))(jax.random.split(jax.random.PRNGKey(3), 256))
 
 
-@pytest.mark.parametrize("action", ["servo_offset", "ctrl"])
+@pytest.mark.parametrize("action", ["servo_offset", "ctrl", "acceleration"])
 def test_reach_and_its_shield_trace_in_float64(action):
     """Under ``jax_enable_x64`` the reset's state has the physics' dtype (float64) and keeps it through a step, bare
     and shielded, a float32 action given. Before, reset gave float32 positions that MJX's step made float64, and
@@ -44,7 +44,10 @@ def test_reach_and_its_shield_trace_in_float64(action):
     from jaxlimits.envs import JointLimitShield
 
     with jax.enable_x64(True):
-        make = functools.partial(make_servo_panda_front_reach, action=action)
+        if action == "acceleration":  # the planar arm: the servo Panda ships no jaxlimits_a_max
+            make = make_planar_robot_reach
+        else:
+            make = functools.partial(make_servo_panda_front_reach, action=action)
         for env in (make(), JointLimitShield(make())):
             s0 = jax.eval_shape(env.reset, jax.random.PRNGKey(0))
             s1 = jax.eval_shape(env.step, s0, jax.ShapeDtypeStruct((env.action_size,), jnp.float32))

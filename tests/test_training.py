@@ -79,6 +79,33 @@ def test_config_choices_match_the_library():
 
     assert config.SHIELD_GRADIENTS == SHIELD_GRADIENTS and config.ARM_ACTION_MODES == ACTION_MODES
     assert config.SERVO_ACTION_MODES == ACTIONS and set(config.SERVO_SHIELDS) == set(METHODS)
+    assert set(config.ROBOT_ACTION_MODES) == set(config.SERVO_ENVS)
+    for modes in config.ROBOT_ACTION_MODES.values():  # Reach's own, or a parametrisation over its accelerations
+        assert set(modes) <= set(ACTIONS) | set(ACTION_MODES), modes
+
+
+def test_the_planar_arm_trains_under_the_one_shield_through_its_config():
+    """``planar_robot_reach``: the planar arm as a robot (``Reach(action="acceleration")``) inside
+    ``JointLimitShield``, velocity actions tracked through it as over ``SafetyWrapper``; the config refuses the
+    servo env's actions for it (and the arm's task-space ones, which need ``ArmReach``)."""
+    from jaxlimits.envs import JointLimitShield
+    from jaxlimits.envs.actions import VelocityActions
+    from jaxlimits.envs.reach import Reach
+    from jaxlimits.envs.violation_metrics import ViolationMetrics
+    from jaxlimits.training.brax_ppo import env_from_config
+
+    cfg = config.load("planar_robot_reach_ppo")
+    assert cfg.override(env="planar_reach") == config.load("planar_reach_ppo")  # the same run otherwise
+    env = env_from_config(cfg)
+    assert isinstance(env, ViolationMetrics) and isinstance(env.env, VelocityActions)
+    shield = env.env.env
+    assert isinstance(shield, JointLimitShield) and shield.method == "viability"
+    assert isinstance(shield.env, Reach) and shield.env.action_mode == "acceleration"
+    np.testing.assert_allclose(shield.env._accelerations.scale, shield.robot.limits.a_max)
+    assert isinstance(env_from_config(cfg.override(action_mode="acceleration")).env, JointLimitShield)
+    for bad in ("servo_offset", "task_space"):
+        with pytest.raises(ValueError, match="config field 'action_mode' must be one of"):
+            cfg.override(action_mode=bad)
 
 
 def test_apg_config_selects_the_shield_gradient():

@@ -69,13 +69,14 @@ def make_env(
     """``SafetyWrapper(env(**kwargs), method=shield, gradient=shield_gradient, impact=impact)`` with the
     policy's actions meaning ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm
     and the evaluator see. ``impact``: the impact-aware speed cap (envs with contacts). A ``SERVO_ENVS``
-    name gets ``_servo_env`` instead (its actions are the actuators' own: ``action_mode`` ``"servo_offset"``
-    or ``"ctrl"``). ``action_mode=None``: ``"acceleration"``, for a ``SERVO_ENVS`` name ``"servo_offset"``."""
+    name gets ``_servo_env`` instead (the one shield over ``Reach``; its actions ``config.ROBOT_ACTION_MODES``).
+    ``action_mode=None``: ``"acceleration"``, for ``servo_panda_front_reach`` ``"servo_offset"``."""
     from jaxlimits.envs import SafetyWrapper
     from jaxlimits.envs.actions import with_action_mode
 
     if name in SERVO_ENVS:
-        return _servo_env(name, shield, action_mode or "servo_offset", **kwargs)
+        default = "servo_offset" if name == "servo_panda_front_reach" else "acceleration"
+        return _servo_env(name, shield, action_mode or default, **kwargs)
     action_mode = action_mode or "acceleration"
     shielded = SafetyWrapper(
         make_base_env(name, **kwargs), method=shield, gradient=shield_gradient, impact=True if impact else None
@@ -86,16 +87,19 @@ def make_env(
 def _servo_env(name: str, shield: str, action_mode: str, **kwargs):
     """``ViolationMetrics(JointLimitShield(Reach(action=action_mode, **kwargs), method=shield))`` for a
     ``SERVO_ENVS`` name: the any-robot shield around the any-robot reach, its record under the metric
-    names the trainers and the evaluator read (``jaxlimits.envs.violation_metrics``)."""
+    names the trainers and the evaluator read (``jaxlimits.envs.violation_metrics``). ``"velocity"`` (the planar
+    arm): ``VelocityActions`` over the shield of ``Reach(action="acceleration")``, as over ``SafetyWrapper``."""
     from jaxlimits.envs import JointLimitShield
-    from jaxlimits.envs.reach import make_servo_panda_front_reach
+    from jaxlimits.envs.actions import with_action_mode
+    from jaxlimits.envs.reach import make_planar_robot_reach, make_servo_panda_front_reach
     from jaxlimits.envs.violation_metrics import ViolationMetrics
 
-    makers = {"servo_panda_front_reach": make_servo_panda_front_reach}
+    makers = {"servo_panda_front_reach": make_servo_panda_front_reach, "planar_robot_reach": make_planar_robot_reach}
+    reach_action = "acceleration" if action_mode == "velocity" else action_mode
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # the torque-derived a_max's quantile notice
-        shielded = JointLimitShield(makers[name](action=action_mode, **kwargs), method=shield)
-    return ViolationMetrics(shielded)
+        shielded = JointLimitShield(makers[name](action=reach_action, **kwargs), method=shield)
+    return ViolationMetrics(with_action_mode(shielded, action_mode) if action_mode == "velocity" else shielded)
 
 
 def env_from_config(cfg: RunConfig):

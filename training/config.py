@@ -11,11 +11,23 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-ENVS = ("planar_reach", "panda_reach", "panda_front_reach", "planar_wall", "servo_panda_front_reach")
+ENVS = (
+    "planar_reach",
+    "panda_reach",
+    "panda_front_reach",
+    "planar_wall",
+    "servo_panda_front_reach",
+    "planar_robot_reach",
+)
 CONTACT_ENVS = ("planar_wall",)  # envs with contacts: the impact-aware speed cap applies (``impact``)
-# envs over any robot (``jaxlimits.envs.reach.Reach`` inside ``JointLimitShield``): actions are the
-# actuators' own commands (``SERVO_ACTION_MODES``), the shield any of ``JointLimitShield``'s methods
-SERVO_ENVS = ("servo_panda_front_reach",)
+# envs over any robot (``jaxlimits.envs.reach.Reach`` inside ``JointLimitShield``, the one shield): the shield any of
+# ``JointLimitShield``'s methods, the actions per env (``ROBOT_ACTION_MODES``): the servo Panda's actuators' own
+# commands; the planar arm's joint accelerations (``Reach(action="acceleration")``) or velocities tracked through them
+SERVO_ENVS = ("servo_panda_front_reach", "planar_robot_reach")
+ROBOT_ACTION_MODES = {
+    "servo_panda_front_reach": ("ctrl", "servo_offset"),
+    "planar_robot_reach": ("acceleration", "velocity"),
+}
 REACH_ENVS = tuple(e for e in ENVS if e not in CONTACT_ENVS)  # the reach tasks (success = final distance)
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
@@ -24,7 +36,7 @@ ARM_ACTION_MODES = (
     "velocity",
     "task_space",
 )  # jaxlimits.envs.actions.ACTION_MODES (not imported: no MuJoCo here)
-SERVO_ACTION_MODES = ("ctrl", "servo_offset")  # jaxlimits.envs.reach.ACTIONS
+SERVO_ACTION_MODES = ("ctrl", "servo_offset", "acceleration")  # jaxlimits.envs.reach.ACTIONS
 SERVO_SHIELDS = ("none", "naive", "viability", "jerk")  # jaxlimits.envs.joint_shield.METHODS
 SHIELD_GRADIENTS = ("exact", "straight_through", "exact_fixed_bounds")  # envs.safety.SHIELD_GRADIENTS
 
@@ -108,7 +120,7 @@ class RunConfig:
             raise ValueError(f"config field 'env' must be one of {ENVS}, got {self.env!r}")
         servo = self.env in SERVO_ENVS
         for name, value, allowed in (
-            ("action_mode", self.action_mode, SERVO_ACTION_MODES if servo else ARM_ACTION_MODES),
+            ("action_mode", self.action_mode, ROBOT_ACTION_MODES[self.env] if servo else ARM_ACTION_MODES),
             ("shield", self.shield, SERVO_SHIELDS if servo else SHIELDS),
             ("algo", self.algo, ("ppo",) if servo else ALGOS),
         ):
