@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import jaxlimits.envs  # noqa: F401  (XLA flags first)
 
+import functools
 import warnings
 
 import jax
@@ -18,7 +19,7 @@ import pytest
 from jaxlimits.envs import JointLimitShield
 from jaxlimits.envs.acceleration_actions import AccelerationActions
 from jaxlimits.envs.adversarial import shield_rollout
-from jaxlimits.envs.arm import ASSETS, make_planar_reach
+from jaxlimits.envs.arm import ASSETS, make_panda_reach, make_planar_reach
 from jaxlimits.envs.reach import Reach
 from jaxlimits.envs.safety import SafetyWrapper
 
@@ -97,23 +98,28 @@ def test_bad_input_is_an_eager_error_naming_it():
         Reach(ASSETS / "panda_servo.xml", action="acceleration")
 
 
-@pytest.fixture(scope="module")
-def planar_pair():
-    """``(limits, SafetyWrapper(ArmReach), JointLimitShield(Reach(action="acceleration")))`` over the same planar arm
-    and the same action scale; ``limits`` the arm's own (its torque-derived ``a_max`` is given to the one shield)."""
-    arm = make_planar_reach()
+@functools.lru_cache(maxsize=None)
+def _pair(xml: str):
+    """``(limits, SafetyWrapper(ArmReach), JointLimitShield(Reach(action="acceleration")))`` over the same arm and the
+    same action scale; ``limits`` the arm's own (its torque-derived ``a_max`` is given to the one shield)."""
+    arm = {"planar3.xml": make_planar_reach, "panda.xml": make_panda_reach}[xml]()
     own = arm.limits
-    reach = Reach(ASSETS / "planar3.xml", action="acceleration", acceleration_scale=own.a_max, n_frames=arm.frame_skip)
+    reach = Reach(ASSETS / xml, action="acceleration", acceleration_scale=own.a_max, n_frames=arm.frame_skip)
     new = JointLimitShield(reach, a_max=own.a_max, torque_limits=False)
     arm.limits = new.decide.limits  # the decision compared on the same numbers (their differences: the first test)
     return own, SafetyWrapper(arm, "viability"), new
 
 
-def test_the_one_shield_decides_as_the_safety_wrapper_on_the_planar_arm(planar_pair):
+@pytest.fixture(scope="module", params=["planar3.xml", "panda.xml"])
+def arm_pair(request):
+    return _pair(request.param)
+
+
+def test_the_one_shield_decides_as_the_safety_wrapper_on_the_projects_arms(arm_pair):
     """The one shield reads the arm's limits from the model as ``ArmReach`` does, up to Brax's float32 copy of the
     ranges and the realisation margin (``joint_shield.QUANTUM_SAFETY``: ~1e-6 of ``v_max`` for these motors); given
     the same numbers, its decision is the ``SafetyWrapper``'s, states on and past the limits included."""
-    own, old, new = planar_pair
+    own, old, new = arm_pair
     lim = new.decide.limits
     for field in ("q_min", "q_max", "a_max", "j_max"):
         np.testing.assert_allclose(getattr(new.robot.limits, field), getattr(own, field), rtol=1e-7, err_msg=field)
@@ -130,6 +136,7 @@ def test_the_one_shield_decides_as_the_safety_wrapper_on_the_planar_arm(planar_p
     v = (rng.uniform(-1.05, 1.05, (B, n)) * v_max).astype(np.float32)
     a_des = (rng.uniform(-1.5, 1.5, (B, n)) * a_max).astype(np.float32)
     states = jax.jit(jax.vmap(old.env.reset_to))(q, v, np.zeros((B, 3), np.float32))
+    assert np.array_equal(np.asarray(states.pipeline_state.qpos), q)
     a_old, b_old = jax.jit(jax.vmap(old.shield))(states, a_des)
     dec = jax.jit(jax.vmap(new.decide))(q, v, a_des)
     for name, x, y in (
@@ -143,8 +150,8 @@ def test_the_one_shield_decides_as_the_safety_wrapper_on_the_planar_arm(planar_p
     assert 0.05 < np.mean(~np.asarray(b_old.viable)) < 0.9  # the sample holds both kinds
 
 
-def test_the_planar_arm_under_the_one_shield_never_violates(planar_pair):
-    *_, shielded = planar_pair
+def test_the_planar_arm_under_the_one_shield_never_violates():
+    *_, shielded = _pair("planar3.xml")
     out = shield_rollout(shielded, batch=16, steps=150)
     for k in ("position", "velocity", "nonviable", "nonfinite", "saturated"):
         assert out[f"count/{k}"] == 0, (k, out)
