@@ -28,6 +28,7 @@ import numpy as np
 
 from jaxlimits.envs import mjx_stages
 from jaxlimits.envs.actuation import _invert
+from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.robot import (
     _SHIELDABLE,
     _TRN_JOINT,
@@ -78,23 +79,24 @@ class AccelerationActions:
         if not np.all(np.isfinite(scale) & (scale > 0)):
             raise ValueError(f"acceleration_scale must be finite and > 0, got {scale.tolist()}")
         self.scale = scale
-        f32 = np.float32
-        self._arrays = (dofs, np.zeros(0, np.intp)) + actuator_arrays(np, mjm, mjm, np.arange(nu), f32)
+        self._structure = sys  # which actuators have a bias, which ranges are limited, the integrator, the flags
+        self._dofs = dofs
         self._qadr = np.asarray(mjm.jnt_qposadr)[joints]
-        self._damping = (float(mjm.opt.timestep) * _implicit_damping(sys, xp=np, engine="mjx")).astype(f32)
 
+    @_mjx_tracing
     def ctrl(self, sys, d, action):
         """``(nu,)`` the ``ctrl`` for ``action`` ``(nu,)`` at the positions and velocities of ``d`` (MJX data; its
-        other fields may be stale: the stages are recomputed), clamped to ``ctrlrange``; MJX-traced code
-        (``arm._mjx_tracing``)."""
+        other fields may be stale: the stages are recomputed), clamped to ``ctrlrange``. The gains, biases, ranges and damping are read from ``sys``, the System the env steps
+        with now (a domain randomisation's, traced), as ``MjxActuation.with_system`` reads them."""
         d = d.replace(ctrl=jnp.zeros_like(d.ctrl))
         d = mjx_stages.fwd_velocity(sys, mjx_stages.fwd_position(sys, d))
         d = mjx_stages.fwd_acceleration(sys, mjx_stages.fwd_actuation(sys, d))
         dtype = d.qvel.dtype
-        M_eff = mjx_stages.full_m(sys, d) + jnp.asarray(self._damping, dtype)
+        damping = float(self._structure.opt.timestep) * _implicit_damping(self._structure, sys, jnp, "mjx")
+        M_eff = mjx_stages.full_m(sys, d) + damping.astype(dtype)
         f_other = d.qfrc_smooth - d.qfrc_actuator
         a = jnp.asarray(action, dtype) * jnp.asarray(self.scale, dtype)
-        arrays = self._arrays[:2] + tuple(jnp.asarray(x, dtype) for x in self._arrays[2:])
-        dofs = self._arrays[0]
-        ctrl, _, _ = _invert(jnp, arrays, M_eff, f_other, a, d.qpos[self._qadr], d.qvel[dofs], False)
+        nu = len(self._dofs)
+        arrays = (self._dofs, np.zeros(0, np.intp)) + actuator_arrays(jnp, self._structure, sys, np.arange(nu), dtype)
+        ctrl, _, _ = _invert(jnp, arrays, M_eff, f_other, a, d.qpos[self._qadr], d.qvel[self._dofs], False)
         return ctrl

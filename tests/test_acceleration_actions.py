@@ -159,3 +159,29 @@ def test_the_planar_arm_under_the_one_shield_never_violates():
     reach = Reach(ASSETS / "planar3.xml", action="acceleration")
     bare = shield_rollout(JointLimitShield(reach, method="none", torque_limits=False), batch=16, steps=150)
     assert bare["count/position"] > 0 and bare["count/velocity"] > 0, bare
+
+
+def test_the_ctrl_follows_the_system_it_is_given():
+    """A domain randomisation's System (gears doubled, joint damping added: Euler's implicit damping) is the one the
+    ``ctrl`` is computed for, checked against C MuJoCo with the same changes; the construction's would miss."""
+    env = Reach(ASSETS / "planar3.xml", action="acceleration")
+    mjm = mujoco.MjModel.__copy__(env.mj_model)
+    mjm.actuator_gear[:, 0] *= 2.0
+    mjm.dof_damping[:] = 0.5
+    sys = env.sys.tree_replace(
+        {"actuator_gear": jnp.asarray(mjm.actuator_gear), "dof_damping": jnp.asarray(mjm.dof_damping)}
+    )
+    ps = jax.jit(env.reset)(jax.random.PRNGKey(0)).pipeline_state
+    v = np.array([0.8, -0.5, 1.2], np.float32)
+    ps = ps.replace(qvel=jnp.asarray(v))
+    action = np.array([0.2, -0.1, 0.15], np.float32)
+    want = action * env._accelerations.scale
+    realised = {}
+    for name, system in (("given", sys), ("construction", env.sys)):
+        ctrl = jax.jit(lambda p, a, s=system: env._accelerations.ctrl(s, p, a))(ps, action)
+        d = mujoco.MjData(mjm)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = np.asarray(ps.qpos), v, np.asarray(ctrl, np.float64)
+        mujoco.mj_step(mjm, d)
+        realised[name] = (d.qvel - v) / mjm.opt.timestep
+    np.testing.assert_allclose(realised["given"], want, atol=1e-4 * want.max() + 1e-4)
+    assert np.max(np.abs(realised["construction"] - want)) > 0.1
