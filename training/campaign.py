@@ -18,7 +18,8 @@ do reach the limits (a campaign whose unshielded rows were clean would prove not
 
 Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
-cap, the same cap anticipating braking, viability, none); the shipped position-servo Panda and UR5e and Brax's ``reacher``, ``pusher``, ``ant`` and ``hopper`` under
+cap, the same cap anticipating braking, viability, none); the planar arm again as a robot under the one shield
+(``planar arm (one shield)``: ``Reach(action="acceleration")`` in ``JointLimitShield``); the shipped position-servo Panda and UR5e and Brax's ``reacher``, ``pusher``, ``ant`` and ``hopper`` under
 ``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none; for ``pusher`` also viability + the impact
 cap on its wrist, ``JointLimitShield(impact=ImpactPoint(...))``), whose metrics ``EvaluatorMetrics``
 renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env; and Gymnasium's
@@ -186,6 +187,14 @@ def _ur5e():
     return make_ur5e_reach()
 
 
+def _planar_robot():
+    """The project's planar arm as a robot under the one shield (``Reach(action="acceleration")``: the campaign's
+    actions ``[-1, 1]`` are joint accelerations ``action * a_max``, as for the ``planar arm`` target)."""
+    from jaxlimits.envs.reach import make_planar_robot_reach
+
+    return make_planar_robot_reach()
+
+
 ARM_SHIELDS = ("viability", "jerk", "viability+torque_box", "none")
 # JointLimitShield measures position, velocity and torque at every substep; its a_max comes from a quantile of
 # sampled states, so the actuators may saturate (counted): the torque limit is measured, not claimed
@@ -198,6 +207,9 @@ TARGETS = {
     ),
     "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES),
     "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), **_SHIELD_MEASURES),
+    "planar arm (one shield)": Target(
+        "planar arm (one shield)", _third_party(_planar_robot), ("viability", "jerk", "none"), **_SHIELD_MEASURES
+    ),
     "brax reacher": Target(
         "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), **_SHIELD_MEASURES
     ),
