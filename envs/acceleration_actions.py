@@ -86,8 +86,9 @@ class AccelerationActions:
     @_mjx_tracing
     def ctrl(self, sys, d, action):
         """``(nu,)`` the ``ctrl`` for ``action`` ``(nu,)`` at the positions and velocities of ``d`` (MJX data; its
-        other fields may be stale: the stages are recomputed), clamped to ``ctrlrange``. The gains, biases, ranges and damping are read from ``sys``, the System the env steps
-        with now (a domain randomisation's, traced), as ``MjxActuation.with_system`` reads them."""
+        other fields may be stale: the stages are recomputed), clamped to ``ctrlrange``. The gains, biases, ranges
+        and damping are read from ``sys``, the System the env steps with now (a domain randomisation's, traced), as
+        ``MjxActuation.with_system`` reads them."""
         d = d.replace(ctrl=jnp.zeros_like(d.ctrl))
         d = mjx_stages.fwd_velocity(sys, mjx_stages.fwd_position(sys, d))
         d = mjx_stages.fwd_acceleration(sys, mjx_stages.fwd_actuation(sys, d))

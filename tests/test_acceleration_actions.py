@@ -28,6 +28,15 @@ with warnings.catch_warnings():
     from brax.io import mjcf
 
 
+def _c_mujoco_acceleration(mjm, q, v, ctrl):
+    """``(nv,)`` the acceleration one C MuJoCo substep realises from ``(q, v)`` with ``ctrl``: ``(v+ - v) / h``, and
+    ``d`` after it (its constraint rows)."""
+    d = mujoco.MjData(mjm)
+    d.qpos[:], d.qvel[:], d.ctrl[:] = np.asarray(q), v, np.asarray(ctrl, np.float64)
+    mujoco.mj_step(mjm, d)
+    return (d.qvel - v) / mjm.opt.timestep, d
+
+
 @pytest.mark.parametrize(
     "xml, scale, rtol",
     [
@@ -51,11 +60,8 @@ def test_the_ctrl_realises_the_asked_acceleration_in_c_mujoco(xml, scale, rtol):
         ctrl = np.asarray(ctrl_of(ps.replace(qvel=jnp.asarray(v)), action), np.float64)
         lo, hi = mjm.actuator_ctrlrange.T
         assert np.all((ctrl > lo) & (ctrl < hi)), "the test's actions should not saturate"
-        d = mujoco.MjData(mjm)
-        d.qpos[:], d.qvel[:], d.ctrl[:] = np.asarray(ps.qpos), v, ctrl
-        mujoco.mj_step(mjm, d)
+        realised, d = _c_mujoco_acceleration(mjm, ps.qpos, v, ctrl)
         assert d.ncon == 0 and d.nefc == 0
-        realised = (d.qvel - v) / mjm.opt.timestep
         want = np.zeros(mjm.nv)
         want[dofs] = action * acc.scale
         np.testing.assert_allclose(realised, want, atol=rtol * acc.scale.max())
@@ -179,9 +185,6 @@ def test_the_ctrl_follows_the_system_it_is_given():
     realised = {}
     for name, system in (("given", sys), ("construction", env.sys)):
         ctrl = jax.jit(lambda p, a, s=system: env._accelerations.ctrl(s, p, a))(ps, action)
-        d = mujoco.MjData(mjm)
-        d.qpos[:], d.qvel[:], d.ctrl[:] = np.asarray(ps.qpos), v, np.asarray(ctrl, np.float64)
-        mujoco.mj_step(mjm, d)
-        realised[name] = (d.qvel - v) / mjm.opt.timestep
+        realised[name], _ = _c_mujoco_acceleration(mjm, ps.qpos, v, ctrl)
     np.testing.assert_allclose(realised["given"], want, atol=1e-4 * want.max() + 1e-4)
     assert np.max(np.abs(realised["construction"] - want)) > 0.1

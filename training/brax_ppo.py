@@ -41,7 +41,7 @@ with warnings.catch_warnings():
     from brax.training.agents.ppo import train as brax_ppo_train
 
 from jaxlimits.training import checkpoint, evaluate, tally
-from jaxlimits.training.config import CONTACT_ENVS, SERVO_ENVS, RunConfig, from_dict
+from jaxlimits.training.config import CONTACT_ENVS, ROBOT_ACTION_MODES, ROBOT_ENVS, RunConfig, from_dict
 
 
 def make_base_env(name: str, **kwargs):
@@ -68,15 +68,14 @@ def make_env(
 ):
     """``SafetyWrapper(env(**kwargs), method=shield, gradient=shield_gradient, impact=impact)`` with the
     policy's actions meaning ``action_mode`` (``jaxlimits.envs.actions``): the env every algorithm
-    and the evaluator see. ``impact``: the impact-aware speed cap (envs with contacts). A ``SERVO_ENVS``
-    name gets ``_servo_env`` instead (the one shield over ``Reach``; its actions ``config.ROBOT_ACTION_MODES``).
-    ``action_mode=None``: ``"acceleration"``, for ``servo_panda_front_reach`` ``"servo_offset"``."""
+    and the evaluator see. ``impact``: the impact-aware speed cap (envs with contacts). A ``ROBOT_ENVS``
+    name gets ``_robot_env`` instead (the one shield over ``Reach``; its actions ``config.ROBOT_ACTION_MODES``).
+    ``action_mode=None``: ``"acceleration"``, for a ``ROBOT_ENVS`` name the first of its ``ROBOT_ACTION_MODES``."""
     from jaxlimits.envs import SafetyWrapper
     from jaxlimits.envs.actions import with_action_mode
 
-    if name in SERVO_ENVS:
-        default = "servo_offset" if name == "servo_panda_front_reach" else "acceleration"
-        return _servo_env(name, shield, action_mode or default, **kwargs)
+    if name in ROBOT_ENVS:
+        return _robot_env(name, shield, action_mode or ROBOT_ACTION_MODES[name][0], **kwargs)
     action_mode = action_mode or "acceleration"
     shielded = SafetyWrapper(
         make_base_env(name, **kwargs), method=shield, gradient=shield_gradient, impact=True if impact else None
@@ -84,9 +83,9 @@ def make_env(
     return with_action_mode(shielded, action_mode)
 
 
-def _servo_env(name: str, shield: str, action_mode: str, **kwargs):
+def _robot_env(name: str, shield: str, action_mode: str, **kwargs):
     """``ViolationMetrics(JointLimitShield(Reach(action=action_mode, **kwargs), method=shield))`` for a
-    ``SERVO_ENVS`` name: the any-robot shield around the any-robot reach, its record under the metric
+    ``ROBOT_ENVS`` name: the any-robot shield around the any-robot reach, its record under the metric
     names the trainers and the evaluator read (``jaxlimits.envs.violation_metrics``). ``"velocity"`` (the planar
     arm): ``VelocityActions`` over the shield of ``Reach(action="acceleration")``, as over ``SafetyWrapper``."""
     from jaxlimits.envs import JointLimitShield

@@ -21,13 +21,13 @@ ENVS = (
 )
 CONTACT_ENVS = ("planar_wall",)  # envs with contacts: the impact-aware speed cap applies (``impact``)
 # envs over any robot (``jaxlimits.envs.reach.Reach`` inside ``JointLimitShield``, the one shield): the shield any of
-# ``JointLimitShield``'s methods, the actions per env (``ROBOT_ACTION_MODES``): the servo Panda's actuators' own
+# ``JointLimitShield``'s methods, the actions per env, the first the default: the servo Panda's actuators' own
 # commands; the planar arm's joint accelerations (``Reach(action="acceleration")``) or velocities tracked through them
-SERVO_ENVS = ("servo_panda_front_reach", "planar_robot_reach")
 ROBOT_ACTION_MODES = {
-    "servo_panda_front_reach": ("ctrl", "servo_offset"),
+    "servo_panda_front_reach": ("servo_offset", "ctrl"),
     "planar_robot_reach": ("acceleration", "velocity"),
 }
+ROBOT_ENVS = tuple(ROBOT_ACTION_MODES)
 REACH_ENVS = tuple(e for e in ENVS if e not in CONTACT_ENVS)  # the reach tasks (success = final distance)
 ALGOS = ("ppo", "apg")
 SHIELDS = ("none", "clip", "naive", "viability", "jerk")
@@ -118,7 +118,7 @@ class RunConfig:
     def __post_init__(self):
         if self.env not in ENVS:
             raise ValueError(f"config field 'env' must be one of {ENVS}, got {self.env!r}")
-        servo = self.env in SERVO_ENVS
+        servo = self.env in ROBOT_ENVS
         for name, value, allowed in (
             ("action_mode", self.action_mode, ROBOT_ACTION_MODES[self.env] if servo else ARM_ACTION_MODES),
             ("shield", self.shield, SERVO_SHIELDS if servo else SHIELDS),
