@@ -37,6 +37,7 @@ from jaxlimits.envs.robot import (
     _name,
     _numeric,
     actuator_arrays,
+    actuators_by_joint,
 )
 
 
@@ -58,15 +59,15 @@ class AccelerationActions:
             if int(mjm.actuator_trntype[a]) != _TRN_JOINT or int(mjm.jnt_type[joints[a]]) not in _SHIELDABLE:
                 raise ValueError(f"acceleration actions: actuator {an!r} does not drive a hinge or slide joint")
             _check_actuator(mjm, a)
-        dofs = np.asarray(mjm.jnt_dofadr)[joints]
-        driven = np.bincount(dofs, minlength=nv)
-        if nu != nv or np.any(driven != 1):
-            bad = [int(j) for j in range(int(mjm.njnt)) if driven[int(mjm.jnt_dofadr[j])] != 1]
-            names = [_name(mjm, mujoco.mjtObj.mjOBJ_JOINT, j) for j in bad]
+        driven = actuators_by_joint(mjm)
+        counts = [len(driven.get(j, ())) for j in range(int(mjm.njnt))]
+        if nu != nv or any(c != 1 for c in counts):
+            bad = {_name(mjm, mujoco.mjtObj.mjOBJ_JOINT, j): c for j, c in enumerate(counts) if c != 1}
             raise ValueError(
-                f"acceleration actions need every dof driven by exactly one actuator; joints {names} are driven by "
-                f"{[int(driven[int(mjm.jnt_dofadr[j])]) for j in bad]}"
+                "acceleration actions need every dof driven by exactly one actuator; joints {name: actuators "
+                f"driving it}}: {bad}"
             )
+        dofs = np.asarray(mjm.jnt_dofadr)[joints]
         if scale is None:
             per_joint = _numeric(mjm, "jaxlimits_a_max", int(mjm.njnt))
             if per_joint is None:

@@ -90,12 +90,19 @@ def _per_joint(field: str, value, names) -> np.ndarray | None:
     return arr
 
 
-def _select_joints(mjm: mujoco.MjModel, joints) -> tuple[np.ndarray, np.ndarray]:
-    """``(joint ids, actuator ids)`` of the shielded joints, in the order asked (default: joint order)."""
+def actuators_by_joint(mjm: mujoco.MjModel) -> dict[int, list[int]]:
+    """``{joint id: [actuator ids]}``: the actuators with a joint transmission on each joint they drive (joints no
+    such actuator drives are absent)."""
     driven = {}
     for a in range(mjm.nu):
         if int(mjm.actuator_trntype[a]) == _TRN_JOINT:
             driven.setdefault(int(mjm.actuator_trnid[a, 0]), []).append(a)
+    return driven
+
+
+def _select_joints(mjm: mujoco.MjModel, joints) -> tuple[np.ndarray, np.ndarray]:
+    """``(joint ids, actuator ids)`` of the shielded joints, in the order asked (default: joint order)."""
+    driven = actuators_by_joint(mjm)
     valid = [_name(mjm, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(mjm.njnt) if int(mjm.jnt_type[j]) in _SHIELDABLE]
     if joints is None:
         ids = [j for j in range(mjm.njnt) if int(mjm.jnt_type[j]) in _SHIELDABLE and j in driven]
