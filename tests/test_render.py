@@ -99,3 +99,11 @@ def test_cli_render_run_and_unshielded(tmp_path, capsys):
 
     with pytest.raises(SystemExit):  # --compare and --unshielded exclude each other
         cli.main([*args, "--compare", str(run), "--unshielded"])
+
+
+def test_every_trainable_env_has_a_camera():
+    """``jaxlimits render --run`` picks the camera by the run's env: every env a config can name has one (the
+    main job's ``planar_robot_reach`` had none: its run could not be drawn)."""
+    from jaxlimits.training import config
+
+    assert set(config.ENVS) <= set(render.CAMERAS), sorted(set(config.ENVS) - set(render.CAMERAS))

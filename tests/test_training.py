@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import subprocess
@@ -106,6 +107,15 @@ def test_the_planar_arm_trains_under_the_one_shield_through_its_config():
     for bad in ("servo_offset", "task_space"):
         with pytest.raises(ValueError, match="config field 'action_mode' must be one of"):
             cfg.override(action_mode=bad)
+    # it is the main job's reach unless --config or --env names another
+    from jaxlimits.training import cli
+
+    flags = dict(config=None, env=None, algo=None, steps=None, seed=None, episodes=None)
+    assert cli.main_reach_config(argparse.Namespace(**flags)) == cfg
+    assert cli.main_reach_config(argparse.Namespace(**{**flags, "env": "planar_reach"})) == config.load(
+        "planar_reach_ppo"
+    )
+    assert cli.main_reach_config(argparse.Namespace(**{**flags, "config": "tiny"})) == config.load("tiny")
 
 
 def test_apg_config_selects_the_shield_gradient():
@@ -311,9 +321,10 @@ def _cli(*args, timeout=900):
 
 @pytest.fixture(scope="module")
 def main_job(tmp_path_factory):
-    """``jaxlimits main --task reach --config tiny``: its output folder and the completed process."""
+    """``jaxlimits main --task reach --config tiny --env planar_robot_reach`` (the main job's env: the planar arm
+    under the one shield): its output folder and the completed process."""
     out = tmp_path_factory.mktemp("main_job") / "main"
-    return out, _cli("main", "--task", "reach", "--config", "tiny", "--out", str(out))
+    return out, _cli("main", "--task", "reach", "--config", "tiny", "--env", "planar_robot_reach", "--out", str(out))
 
 
 def test_main_job_trains_and_evaluates_on_a_tiny_budget(main_job, monkeypatch):
@@ -326,6 +337,7 @@ def test_main_job_trains_and_evaluates_on_a_tiny_budget(main_job, monkeypatch):
     vi = results["shields"]["viability"]
     from jaxlimits.training import brax_ppo
 
+    assert results["config"]["env"] == "planar_robot_reach"
     assert vi["training"]["env_steps"] == brax_ppo.total_env_steps(config.load("tiny")) >= 4000
     assert vi["training"]["violations/position"] == 0 and vi["training"]["violations/velocity"] == 0
     # tiny's eval_episodes equal its num_eval_envs: the final evaluation is the in-training evaluator's program
@@ -350,7 +362,7 @@ def test_main_job_trains_and_evaluates_on_a_tiny_budget(main_job, monkeypatch):
     run_notebook(NOTEBOOK_DIR / "06_training.ipynb", monkeypatch, JAXLIMITS_RESULTS=str(out))
     # the checkpoint reloads: the configuration it was trained with, finite parameters
     cfg, _, params = brax_ppo.load_policy(out / "runs" / "viability")
-    assert cfg.shield == "viability" and cfg.env == "planar_reach"
+    assert cfg.shield == "viability" and cfg.env == "planar_robot_reach"
     assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(params))
 
 

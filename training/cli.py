@@ -1,7 +1,8 @@
 """Command-line entry point: ``jaxlimits <command>`` (or ``python -m jaxlimits.training.cli``).
 
 Commands:
-  main         the main job (``make demo``): planar reach trained with shield=viability and shield=none,
+  main         the main job (``make demo``): planar reach trained with shield=viability and shield=none
+               (config ``planar_robot_reach_ppo``: the planar arm as a robot under the one shield),
                and the contact task (planar wall strike) with and without the impact cap; each policy
                evaluated over 10^4 episodes; one table, plots (``--task reach`` or ``contact``: one)
   contact      the contact task (planar wall strike): train PPO with and without the impact cap,
@@ -40,6 +41,9 @@ def _add_run_flags(p, default_out):
     p.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
 
 
+MAIN_REACH_CONFIG = "planar_robot_reach_ppo"  # the main job's reach: the project's arm under the one shield
+
+
 def _config(args, config_name=None, **extra):
     """The run config from ``--config`` (or ``config_name``, or ``<env>_<algo>``) with the flags' overrides."""
     from jaxlimits.training import config
@@ -50,6 +54,11 @@ def _config(args, config_name=None, **extra):
         env=args.env, algo=args.algo, num_timesteps=args.steps, seed=args.seed, eval_episodes=args.episodes
     )
     return cfg.override(**{**overrides, **extra})
+
+
+def main_reach_config(args):
+    """The main job's reach config: ``--config`` or ``<--env>_<algo>`` when given, else ``MAIN_REACH_CONFIG``."""
+    return _config(args, config_name=None if args.config or args.env else MAIN_REACH_CONFIG)
 
 
 def main(argv=None) -> int:
@@ -66,7 +75,7 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p_main = sub.add_parser("main", help="train with and without the shield, evaluate, compare (the main job)")
-    _add_run_flags(p_main, "results/main")
+    _add_run_flags(p_main, "results/main")  # its reach's default config: MAIN_REACH_CONFIG
     p_main.add_argument("--shields", default="viability,none", help="comma-separated shields of the reach task")
     p_main.add_argument(
         "--task", default="reach,contact", help="comma-separated tasks: reach (--config), contact (--contact-config)"
@@ -133,7 +142,7 @@ def main(argv=None) -> int:
             parser.error(f"--task must name reach and/or contact, got {args.task!r}")
         main_job.run(
             args.out,
-            _config(args) if "reach" in tasks else None,
+            main_reach_config(args) if "reach" in tasks else None,
             shields=shields,
             show_progress=not args.no_progress,
             contact_cfg=_config(args, config_name=args.contact_config, env=None) if "contact" in tasks else None,

@@ -3,10 +3,11 @@
 ``run(out, cfg, contact_cfg=...)`` runs two tasks, each trained from the same config and seed per
 shield and evaluated over ``eval_episodes`` parallel episodes (``evaluate.Evaluator``):
 
-- ``reach`` (``cfg``, planar reach): one run per shield (default ``viability`` and ``none``); with
-  velocity actions and the IK observation also ``evaluate.ik_reference_policy`` (a greedy scripted
-  reach controller, viability shield, same episodes), the reference a learned policy is measured
-  against;
+- ``reach`` (``cfg``, planar reach; ``jaxlimits main``'s default ``planar_robot_reach_ppo``: the planar arm
+  as a robot, ``JointLimitShield`` over ``Reach(action="acceleration")``): one run per shield (default
+  ``viability`` and ``none``); with velocity actions and the IK observation also
+  ``evaluate.ik_reference_policy`` (a greedy scripted reach controller, viability shield, same episodes),
+  the reference a learned policy is measured against;
 - ``contact`` (``contact_cfg``, the planar wall strike; ``contact_job``): the joint-limit shield with
   and without the impact-aware speed cap, every strike measured and counted.
 

@@ -65,6 +65,7 @@ CAMERAS = {
     "panda_reach": ((0.25, 0.0, 0.4), 1.8, 135.0, -20.0),
 }
 CAMERAS["panda_front_reach"] = CAMERAS["servo_panda_front_reach"] = CAMERAS["panda_reach"]  # the same robot
+CAMERAS["planar_robot_reach"] = CAMERAS["planar_reach"]  # the same arm, under the one shield
 WALL_RGBA = np.array([0.6, 0.55, 0.5, 1.0], np.float32)
 WALL_HALF_THICKNESS = 0.02  # [m], of the slab the wall is drawn as
 STRIP_ROW = 7  # [px] per joint in the limits strip
