@@ -168,6 +168,13 @@ def remove_excess(a, g, h, u):
 REACH_STEPS = 3  # control steps of approach at the velocity limits within which a surface makes the cap active
 
 
+def _digest(x):
+    """``ImpactModel.key``'s digest of one field: an array's bytes, a contact model's ``key()``, else ``repr``."""
+    if isinstance(x, np.ndarray):
+        return x.tobytes()
+    return x.key() if isinstance(x, _impact.ContactModel) else repr(x)
+
+
 class ImpactModel(NamedTuple):
     """``ImpactPoint`` resolved against a model: ``site`` (-1: the body's origin), ``body``, the unit ``normal``,
     ``c_max``, ``dt_impact`` [s], ``tau_imp_max`` ``(n,)`` [N m], ``margin``, ``contact``, ``enforce``, ``surface``
@@ -276,8 +283,8 @@ class ImpactModel(NamedTuple):
         return M[dofs, :][:, dofs], J, J_rate, np.array(point)
 
     def key(self) -> tuple:
-        """A hashable digest of every field (a compiled decision's cache key)."""
-        return tuple(np.asarray(x).tobytes() if isinstance(x, np.ndarray) else repr(x) for x in self)
+        """A hashable digest of every field (a compiled decision's cache key; the contact model's own ``key``)."""
+        return tuple(_digest(x) for x in self)
 
     def approach_speed(self, J, v) -> jax.Array:
         """``()`` the point's speed along ``normal`` [m/s] for joint velocity ``v`` (positive: approaching)."""

@@ -286,3 +286,28 @@ def test_the_trainers_metric_names_carry_the_cap():
         env = ViolationMetrics(JointLimitShield(_pusher(), v_max=2.0, impact=POINT))
     metrics = jax.eval_shape(env.reset, jax.random.PRNGKey(0)).metrics
     assert {"impact_cap", "impact_infeasible", "shield/impact_active"} <= set(metrics)
+
+
+def test_the_cache_key_tells_contact_models_apart_by_their_parameters(pusher_robot):
+    """``ImpactModel.key`` (the compiled decision's cache key) digests the contact model by its class and parameters
+    (``ContactModel.key``), not by ``repr``: a user's model without ``__repr__`` would be keyed by its object address,
+    which Python reuses once the object is collected, so another model's compiled decision could be served."""
+    import jaxlimits.impact as ji
+
+    class Scaled(ji.CoulombContact):  # a user's model, default repr (an address)
+        def __init__(self, mu, gain):
+            super().__init__(mu)
+            self.gain = gain
+
+    mjm, robot, _ = pusher_robot
+
+    def key(contact):
+        return POINT._replace(contact=contact).resolve(mjm, robot).key()
+
+    assert key(ji.CoulombContact(0.3)) == key(ji.CoulombContact(0.3)) != key(ji.CoulombContact(0.5))
+    assert key(Scaled(0.3, 2.0)) == key(Scaled(0.3, 2.0))  # equal parameters: one compiled decision, shared
+    assert key(Scaled(0.3, 2.0)) != key(Scaled(0.3, 3.0)) != key(ji.CoulombContact(0.3))
+    assert key(ji.PaperContact()) == key(None) != key(ji.CoulombContact(0.0))
+    far, near = np.zeros(2000), np.zeros(2000)
+    near[1000] = 1e-9  # repr elides the middle of a long array
+    assert repr(far) == repr(near) and key(Scaled(0.3, far)) != key(Scaled(0.3, near))

@@ -42,6 +42,7 @@ import abc
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxlimits._src.safe_math import tiny_floor
 
@@ -91,6 +92,13 @@ def _safe_norm(x, axis):
     return jnp.sqrt(jnp.sum(x * x, axis=axis) + tiny_floor(x.dtype) ** 2)
 
 
+def _attribute_digest(v):
+    if hasattr(v, "__array__") and not isinstance(v, (bool, int, float, complex)):
+        a = np.asarray(v)
+        return ("array", str(a.dtype), a.shape, a.tobytes())
+    return repr(v)
+
+
 class ContactModel(abc.ABC):
     """The interface: ``unit_jumps(M, J, normal, reg) -> UnitJumps``; ``exact`` when the spreads are zero."""
 
@@ -99,6 +107,18 @@ class ContactModel(abc.ABC):
     @abc.abstractmethod
     def unit_jumps(self, M, J, normal, reg) -> UnitJumps:
         """The model's ``UnitJumps`` for ``M`` (..., n, n), ``J`` (..., 3, n), ``normal`` (..., 3), ``reg``."""
+
+    def key(self) -> tuple:
+        """A hashable digest of the model: its class and every attribute (arrays by dtype, shape and bytes, since
+        their ``repr`` elides; others by ``repr``): a compiled decision's cache key. ``repr(self)`` would not do: a
+        subclass inherits its parent's, or holds an object address, which Python reuses after collection.
+        Override it where a parameter is not an instance attribute."""
+        cls = type(self)
+        return (
+            cls.__module__,
+            cls.__qualname__,
+            tuple(sorted((k, _attribute_digest(v)) for k, v in vars(self).items())),
+        )
 
 
 class PaperContact(ContactModel):
