@@ -37,7 +37,9 @@ outside the shield (``envs/nonfinite_guard.py``) keeps a NaN action out of the e
 too; the shield brakes on the step it flags.
 
 Per step: ``state.info["violation"] = {"position", "velocity", "torque"}`` (largest excess over the
-step's substeps [rad or m, rad/s or m/s, N m or N]) and ``state.metrics["shield/*"]``: the same three,
+step's substeps [rad or m, rad/s or m/s, N m or N]), with ``"jerk"`` too where the robot has ``j_max``
+(``max |a_safe - a_prev| - j_max dt`` [rad/s^2]: the change of the held acceleration from the last step's, as
+``ArmReach`` measures it; ``a_prev`` is 0 after a reset), and ``state.metrics["shield/*"]``: the same,
 ``intervention`` (``max |a_safe - a_des|``), ``saturated``, ``nonfinite``, ``nonviable`` (0/1 per
 step), ``accel_error`` (``max |(v+ - v)/h - a_safe|`` over substeps and joints: contact forces,
 saturation and RK4's second-order error show here) and ``disturbance`` (largest constraint force [N m]
@@ -209,7 +211,8 @@ class JointLimitShield(Wrapper):
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``, ``impact``
-    (``impact_point.ImpactModel`` or ``None``).
+    (``impact_point.ImpactModel`` or ``None``), ``violations`` (the kinds ``info["violation"]`` holds: ``VIOLATIONS``,
+    and ``"jerk"`` where the robot has ``j_max``).
     """
 
     def __init__(
@@ -254,7 +257,10 @@ class JointLimitShield(Wrapper):
             inside = self.robot.pose_inside(np.asarray(init_q), getattr(base, "_reset_noise_scale", 0.0))
             base.sys = base.sys.replace(init_q=jnp.asarray(inside, init_q.dtype))
         self.impact = None if impact is None else impact.resolve(_mj_model_of(base.sys), self.robot)
-        self._metric_names = SHIELD_METRICS + (IMPACT_METRICS if self.impact is not None else ())
+        # the kinds of info["violation"]: jerk where the robot has a jerk limit to measure it against
+        self.violations = VIOLATIONS + (("jerk",) if self.robot.limits.j_max is not None else ())
+        self._metric_names = SHIELD_METRICS + self.violations[len(VIOLATIONS) :]
+        self._metric_names += IMPACT_METRICS if self.impact is not None else ()
         # MJX computes in float32: the limits keep clear of the servos' ctrl rounding (joint_shield's docstring)
         self.decide = SafeAcceleration(
             self.robot, self.n_frames, method, gradient, realisation_margin=True, impact=self.impact
@@ -360,6 +366,9 @@ class JointLimitShield(Wrapper):
         rec["nonviable"] = ~jnp.all(dec.viable)
         rec["torque_conflict"] = dec.conflict
         rec["beyond_bounds"] = SafeAcceleration.beyond_bounds(dec)
+        if "jerk" in self.violations:  # float32, as the decision and ArmReach's measure
+            step_max = jnp.asarray(rob.limits.j_max, jnp.float32) * jnp.float32(self.decide.dt)
+            rec["jerk"] = jnp.maximum(jnp.max(jnp.abs(a.astype(jnp.float32) - a_prev) - step_max), 0.0)
         if self.impact is not None:
             rec["impact_cap"] = dec.impact_cap
             rec["impact_active"] = dec.impact_active
@@ -381,7 +390,7 @@ class JointLimitShield(Wrapper):
         zero = jnp.zeros((), jnp.float32)
         info = dict(state.info)
         info["shield_a_prev"] = jnp.zeros((n,), jnp.float32)
-        info["violation"] = {k: zero for k in VIOLATIONS}
+        info["violation"] = {k: zero for k in self.violations}
         metrics = dict(state.metrics)
         metrics.update({f"shield/{k}": zero for k in self._metric_names})
         return state.replace(info=info, metrics=metrics)
@@ -399,7 +408,7 @@ class JointLimitShield(Wrapper):
             self._pending = self._outputs = None
         info = dict(nstate.info)
         info["shield_a_prev"] = dec.a_safe.astype(jnp.float32)
-        info["violation"] = {k: rec[k].astype(jnp.float32) for k in VIOLATIONS}
+        info["violation"] = {k: rec[k].astype(jnp.float32) for k in self.violations}
         metrics = dict(nstate.metrics)
         metrics.update({f"shield/{k}": jnp.asarray(rec[k], jnp.float32) for k in self._metric_names})
         return nstate.replace(info=info, metrics=metrics)

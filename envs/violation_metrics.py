@@ -2,8 +2,8 @@
 trainers, tallies and evaluator read (``jaxlimits.training.tally``, ``jaxlimits.training.evaluate``).
 
 Per step, for every ``VIOLATION_KEYS`` kind: ``count/<kind>`` (1.0 when the step's excess is positive) and
-``violation/<kind>`` (the excess, from ``state.info["violation"]``; ``acceleration``, ``jerk`` and
-``impact``, which ``JointLimitShield`` does not measure, are 0); and ``intervention``, ``viable``,
+``violation/<kind>`` (the excess, from ``state.info["violation"]``; ``acceleration`` and ``impact``, which
+``JointLimitShield`` does not measure, are 0, and ``jerk`` where the robot has no ``j_max``); and ``intervention``, ``viable``,
 ``nonfinite_action``, ``torque_box_conflict`` from the shield's ``shield/intervention``,
 ``shield/nonviable``, ``shield/nonfinite``, ``shield/torque_conflict``; with an impact point (``JointLimitShield(
 impact=)``) ``impact_cap`` and ``impact_infeasible`` (``SafetyWrapper``'s names) from ``shield/impact_cap`` and

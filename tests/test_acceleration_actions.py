@@ -167,6 +167,42 @@ def test_the_planar_arm_under_the_one_shield_never_violates():
     assert bare["count/position"] > 0 and bare["count/velocity"] > 0, bare
 
 
+@pytest.mark.parametrize("method", ["jerk", "viability"])
+def test_the_one_shield_measures_the_jerk_where_the_robot_has_a_jerk_limit(method):
+    """``info["violation"]["jerk"]`` = ``max |a_safe - a_prev| - j_max dt`` (``ArmReach``'s measure), recomputed here
+    from the decisions a rollout of bang-bang actions took: 0 at every step under the jerk shield, positive under
+    viability (which does not bound the jerk); a robot without ``j_max`` records none."""
+    reach = Reach(ASSETS / "planar3.xml", action="acceleration")
+    env = JointLimitShield(reach, method=method)
+    assert env.violations == ("position", "velocity", "torque", "jerk")
+    j_step = np.asarray(env.robot.limits.j_max, np.float32) * np.float32(env.decide.dt)
+    batch, steps = 8, 60
+    signs = np.where(np.arange(steps)[:, None, None] // 7 % 2 == 0, 1.0, -1.0) * np.where(
+        np.arange(batch)[None, :, None] % 2 == 0, 1.0, -1.0
+    )
+    actions = jnp.asarray(np.broadcast_to(signs, (steps, batch, env.action_size)), jnp.float32)
+
+    @jax.jit
+    def run(key):
+        def body(state, action):
+            nxt = jax.vmap(env.step)(state, action)
+            a_prev, a_safe = state.info["shield_a_prev"], nxt.info["shield_a_prev"]
+            return nxt, (nxt.info["violation"]["jerk"], jnp.max(jnp.abs(a_safe - a_prev) - j_step[None], axis=-1))
+
+        return jax.lax.scan(body, jax.vmap(env.reset)(jax.random.split(key, batch)), actions)[1]
+
+    recorded, recomputed = (np.asarray(x) for x in run(jax.random.PRNGKey(0)))
+    np.testing.assert_array_equal(recorded, np.maximum(recomputed, 0.0))
+    if method == "jerk":
+        assert recorded.max() == 0.0
+    else:
+        assert (recorded > 0).mean() > 0.1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the torque-derived a_max's quantile notice
+        no_jerk_limit = JointLimitShield(Reach(ASSETS / "ur5e.xml"), v_max=2.0)  # no j_max in its MJCF
+    assert no_jerk_limit.violations == ("position", "velocity", "torque")
+
+
 def test_the_ctrl_follows_the_system_it_is_given():
     """A domain randomisation's System (gears doubled, joint damping added: Euler's implicit damping) is the one the
     ``ctrl`` is computed for, checked against C MuJoCo with the same changes; the construction's would miss."""

@@ -207,3 +207,20 @@ def test_the_benchmark_script_runs_the_clis_campaign_with_its_gc_thresholds(monk
         assert gc.get_threshold() == TRACING_THRESHOLDS
     finally:
         gc.set_threshold(*old)
+
+
+@pytest.mark.parametrize("name", ["planar arm (one shield)", "servo Panda", "brax reacher"])
+def test_a_shield_targets_measured_jerk_is_what_its_env_records(name):
+    """A ``JointLimitShield`` target's table shows the jerk (else ``n/m``) exactly where its env records one (the
+    robot has ``j_max``: ``JointLimitShield.violations``), so no column reads 0 for a limit nobody measured."""
+    import warnings
+
+    from jaxlimits.envs import JointLimitShield
+
+    target = campaign.TARGETS[name]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # a torque-derived a_max's quantile notice
+        env = target.make("viability")
+    while not isinstance(env, JointLimitShield):
+        env = env.env
+    assert set(target.measured) == set(env.violations)

@@ -72,7 +72,8 @@ from jaxlimits.training.campaign_rows import make_row
 
 class EvaluatorMetrics(Wrapper):
     """A ``JointLimitShield`` env's metrics under the evaluator's names: ``count/<k>`` and ``violation/<k>`` for
-    ``VIOLATION_KEYS`` (the shield measures position, velocity and torque; the others are 0), ``viable``
+    ``VIOLATION_KEYS`` (the shield measures position, velocity and torque, and jerk where the robot has ``j_max``;
+    the others are 0), ``viable``
     (1 - ``shield/nonviable``), ``torque_box_conflict`` (``shield/torque_conflict``), ``disturbance``
     (``shield/disturbance``: a contact pushed a shielded joint), ``distance`` (0 when the env has none)."""
 
@@ -199,16 +200,20 @@ ARM_SHIELDS = ("viability", "jerk", "viability+torque_box", "none")
 # JointLimitShield measures position, velocity and torque at every substep; its a_max comes from a quantile of
 # sampled states, so the actuators may saturate (counted): the torque limit is measured, not claimed
 _SHIELD_MEASURES = dict(measured=("position", "velocity", "torque"), torque_claimed=False)
+# and the jerk where the robot has j_max (``JointLimitShield.violations``): the robots that run the jerk shield
+_SHIELD_MEASURES_JERK = dict(_SHIELD_MEASURES, measured=("position", "velocity", "jerk", "torque"))
 TARGETS = {
     "planar arm": Target("planar arm", _arm("planar_reach"), ARM_SHIELDS),
     "Panda (torque)": Target("Panda (torque)", _arm("panda_reach"), ARM_SHIELDS),
     "planar wall": Target(
         "planar wall", _arm("planar_wall"), ("viability+impact", "viability+impact+anticipate", "viability", "none")
     ),
-    "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES),
+    "servo Panda": Target(
+        "servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES_JERK
+    ),
     "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), **_SHIELD_MEASURES),
     "planar arm (one shield)": Target(
-        "planar arm (one shield)", _third_party(_planar_robot), ("viability", "jerk", "none"), **_SHIELD_MEASURES
+        "planar arm (one shield)", _third_party(_planar_robot), ("viability", "jerk", "none"), **_SHIELD_MEASURES_JERK
     ),
     "brax reacher": Target(
         "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), **_SHIELD_MEASURES
