@@ -224,3 +224,19 @@ def test_a_shield_targets_measured_jerk_is_what_its_env_records(name):
     while not isinstance(env, JointLimitShield):
         env = env.env
     assert set(target.measured) == set(env.violations)
+
+
+def test_a_trained_run_over_a_robot_claims_only_what_its_shield_measures(monkeypatch):
+    """``--trained RUN`` of a ``planar_robot_reach`` run (the main job's reach): its target measures what
+    ``JointLimitShield`` records (no acceleration: it was shown as a claimed **0** before), the torque unclaimed."""
+    from jaxlimits.training import algos, config
+
+    cfg = config.load("tiny").override(env="planar_robot_reach")
+    monkeypatch.setattr(algos, "load_policy", lambda run_dir: (cfg, None, None))
+    target = campaign._trained_target("runs/x")[0]
+    assert set(target.measured) == {"position", "velocity", "jerk", "torque"} and not target.torque_claimed
+    assert campaign_rows.guaranteed("viability", target) == ("position", "velocity")
+    assert campaign_rows.guaranteed("jerk", target) == ("position", "velocity", "jerk")
+    monkeypatch.setattr(algos, "load_policy", lambda run_dir: (config.load("tiny"), None, None))
+    arm = campaign._trained_target("runs/y")[0]
+    assert arm.measured == campaign.VIOLATION_KEYS and arm.torque_claimed  # ArmReach measures every limit

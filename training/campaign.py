@@ -236,8 +236,12 @@ TARGETS = {
 
 
 def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
-    """The trained run's own env (its config: action mode, observation) under its shield and ``none``."""
+    """The trained run's own env (its config: action mode, observation) under its shield and ``none``; for an env
+    over any robot (``config.ROBOT_ENVS``: ``JointLimitShield``) the limits it measures are the shield's
+    ``violations`` and the torque limit is measured, not claimed (as ``_SHIELD_MEASURES``)."""
+    from jaxlimits.envs import JointLimitShield
     from jaxlimits.training import algos, brax_ppo
+    from jaxlimits.training.config import ROBOT_ENVS
 
     cfg, policy, params = algos.load_policy(run_dir)
     own = cfg.shield + ("+impact" if cfg.impact else "")
@@ -247,7 +251,13 @@ def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
         method, *extras = shield.split("+")
         return brax_ppo.env_from_config(cfg.override(shield=method, impact="impact" in extras))
 
-    target = Target(f"{cfg.env} (trained: {Path(run_dir).name})", make, shields)
+    measures = {}
+    if cfg.env in ROBOT_ENVS:
+        env = make(own)
+        while not isinstance(env, JointLimitShield):
+            env = env.env
+        measures = dict(measured=env.violations, torque_claimed=False)
+    target = Target(f"{cfg.env} (trained: {Path(run_dir).name})", make, shields, **measures)
     return target, policy, params, cfg.action_repeat
 
 
