@@ -49,7 +49,7 @@ import subprocess
 import sys
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -120,7 +120,9 @@ class Target:
     name: str
     make: Callable
     shields: tuple
-    measured: tuple = VIOLATION_KEYS  # the limits its env measures (the others show as "n/m")
+    # the limits its env measures (the others show as "n/m"); a JointLimitShield env's own ``violations`` replaces
+    # it when its rows run (``measured_by``)
+    measured: tuple = VIOLATION_KEYS
     torque_claimed: bool = True  # the shields guarantee the torque limit (see ``campaign_rows.guaranteed``)
 
     def rows(self, shield: str, classes, steps: int, **kwargs) -> list[dict]:
@@ -197,23 +199,20 @@ def _planar_robot():
 
 
 ARM_SHIELDS = ("viability", "jerk", "viability+torque_box", "none")
-# JointLimitShield measures position, velocity and torque at every substep; its a_max comes from a quantile of
-# sampled states, so the actuators may saturate (counted): the torque limit is measured, not claimed
-_SHIELD_MEASURES = dict(measured=("position", "velocity", "torque"), torque_claimed=False)
-# and the jerk where the robot has j_max (``JointLimitShield.violations``): the robots that run the jerk shield
-_SHIELD_MEASURES_JERK = dict(_SHIELD_MEASURES, measured=("position", "velocity", "jerk", "torque"))
+# JointLimitShield measures position, velocity and torque at every substep, and the jerk where the robot has j_max
+# (its ``violations``, read by ``measured_by``); its a_max comes from a quantile of sampled states, so the actuators
+# may saturate (counted): the torque limit is measured, not claimed
+_SHIELD_MEASURES = dict(torque_claimed=False)
 TARGETS = {
     "planar arm": Target("planar arm", _arm("planar_reach"), ARM_SHIELDS),
     "Panda (torque)": Target("Panda (torque)", _arm("panda_reach"), ARM_SHIELDS),
     "planar wall": Target(
         "planar wall", _arm("planar_wall"), ("viability+impact", "viability+impact+anticipate", "viability", "none")
     ),
-    "servo Panda": Target(
-        "servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES_JERK
-    ),
+    "servo Panda": Target("servo Panda", _third_party(_servo_panda), ("viability", "jerk", "none"), **_SHIELD_MEASURES),
     "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), **_SHIELD_MEASURES),
     "planar arm (one shield)": Target(
-        "planar arm (one shield)", _third_party(_planar_robot), ("viability", "jerk", "none"), **_SHIELD_MEASURES_JERK
+        "planar arm (one shield)", _third_party(_planar_robot), ("viability", "jerk", "none"), **_SHIELD_MEASURES
     ),
     "brax reacher": Target(
         "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), **_SHIELD_MEASURES
@@ -236,10 +235,9 @@ TARGETS = {
 
 
 def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
-    """The trained run's own env (its config: action mode, observation) under its shield and ``none``; for an env
-    over any robot (``config.ROBOT_ENVS``: ``JointLimitShield``) the limits it measures are the shield's
-    ``violations`` and the torque limit is measured, not claimed (as ``_SHIELD_MEASURES``)."""
-    from jaxlimits.envs import JointLimitShield
+    """The trained run's own env (its config: action mode, observation) under its shield and ``none``; over any robot
+    (``config.ROBOT_ENVS``: ``JointLimitShield``) the torque limit is measured, not claimed (as ``_SHIELD_MEASURES``;
+    the limits measured: ``measured_by``)."""
     from jaxlimits.training import algos, brax_ppo
     from jaxlimits.training.config import ROBOT_ENVS
 
@@ -251,14 +249,16 @@ def _trained_target(run_dir) -> tuple[Target, Callable, dict, int]:
         method, *extras = shield.split("+")
         return brax_ppo.env_from_config(cfg.override(shield=method, impact="impact" in extras))
 
-    measures = {}
-    if cfg.env in ROBOT_ENVS:
-        env = make(own)
-        while not isinstance(env, JointLimitShield):
-            env = env.env
-        measures = dict(measured=env.violations, torque_claimed=False)
+    measures = _SHIELD_MEASURES if cfg.env in ROBOT_ENVS else {}
     target = Target(f"{cfg.env} (trained: {Path(run_dir).name})", make, shields, **measures)
     return target, policy, params, cfg.action_repeat
+
+
+def measured_by(target: Target, env) -> Target:
+    """``target`` measuring what ``env`` records: a ``JointLimitShield``'s ``violations`` (reached through the wrappers
+    around it; the jerk only where the robot has ``j_max``), else ``target.measured`` as declared."""
+    kinds = getattr(env, "violations", None)
+    return target if kinds is None else replace(target, measured=tuple(kinds))
 
 
 def run_row_set(
@@ -280,6 +280,7 @@ def run_row_set(
     ``Evaluator`` (one compilation) serves every class; the chunks use seeds ``seed, seed + 1, ...``.
     """
     env = target.make(shield)
+    target = measured_by(target, env)
     horizon = -(-episode_length // action_repeat)
     policy, all_classes = campaign_policy(env.action_size, horizon, trained[0] if trained else None)
     per_chunk = chunk * episode_length
