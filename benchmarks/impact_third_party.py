@@ -14,7 +14,10 @@ bang-bang, random), the same start states and actions:
 
 Columns: position / velocity-violating env-steps (every substep), steps over the cap (approach speed above
 ``max(cap_t-1, cap_t)`` by > 1 % + 1 mm/s), strikes (a contact disturbance begins) with their largest approach
-speed and how many came over the cap, steps where no command met the cap (``impact_infeasible``), and the cost of
+speed and how many came over the cap, the strikes as the shield measures them (``measured_strikes``: a window from
+the wrist's first contact through its compression, ``envs/strike_record.py``) and those whose impulsive joint torque
+exceeded ``tau_imp_max`` (``impact``) with the worst ratio, steps where no command met the cap
+(``impact_infeasible``), and the cost of
 one batched step against the shield without an impact point (``no point``, timed only), the configurations timed
 in alternating rounds (the least of ``--rounds``). Prints a table and one JSON line.
 
@@ -102,15 +105,20 @@ def main():
     for name, r in rows.items():
         r["step_s"] = best[name]
     keys = ("position", "velocity", "over_cap", "strikes", "strike_over_cap", "impact_infeasible", "impact_active")
+    keys += ("measured_strikes", "impact")
     print(f"Brax pusher, {args.batch} envs x {args.steps} steps per shield ({args.batch * args.steps} env-steps)")
-    print(f"{'shield':<12}" + "".join(f"{k:>18}" for k in keys) + f"{'max strike m/s':>16}{'step cost':>11}")
+    print(f"{'shield':<12}" + "".join(f"{k:>18}" for k in keys) + f"{'max strike m/s':>16}", end="")
+    print(f"{'max ratio':>11}{'step cost':>11}")
     for name, r in rows.items():
         cells = "".join(f"{r[f'count/{k}']:>18,}" for k in keys)
-        print(f"{name:<12}{cells}{r['max/strike_speed']:>16.4f}{r['step_s'] / ref:>10.2f}x")
+        print(
+            f"{name:<12}{cells}{r['max/strike_speed']:>16.4f}{r['max/strike_ratio']:>11.3f}{r['step_s'] / ref:>10.2f}x"
+        )
     figures = {
         name: {
             **{k: r[f"count/{k}"] for k in keys},
             "max_strike_speed": r["max/strike_speed"],
+            "max_strike_ratio": r["max/strike_ratio"],
             "max_impact_speed": r["max/impact_speed"],
             "env_steps": r["env_steps"],
             "step_us_at_batch": 1e6 * r["step_s"],

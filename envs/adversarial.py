@@ -79,7 +79,9 @@ def shield_rollout(
     exceeds the cap of the step before and its own, ``max(cap_t-1, cap_t)``, by over 1 % + 1 mm/s: the step before's
     cap bounds its end speed, this step's its own; judged only where both steps applied and met their caps and not
     on a restart's step); ``count/strikes`` (steps where a contact disturbance begins) and ``max/strike_speed`` [m/s]
-    (the approach speed in such a step), ``count/strike_over_cap`` (those over the cap as above, where judged).
+    (the approach speed in such a step), ``count/strike_over_cap`` (those over the cap as above, where judged); the
+    point's strikes as the shield measures them (``envs/strike_record.py``): ``count/measured_strikes``,
+    ``count/impact`` (those whose impulsive joint torque exceeded ``tau_imp_max``), ``max/strike_ratio``.
     """
     reset = env.reset if reset is None else reset
     n_act = env.action_size
@@ -121,6 +123,10 @@ def shield_rollout(
                     "count/strike_over_cap": acc["count/strike_over_cap"] + (strike & above),
                     "max/impact_speed": jnp.maximum(acc["max/impact_speed"], speed),
                     "max/strike_speed": jnp.maximum(acc["max/strike_speed"], jnp.where(strike, speed, 0.0)),
+                    # the point's strikes as the shield measures them (envs/strike_record.py)
+                    "count/measured_strikes": acc["count/measured_strikes"] + (now["shield/strike"] > 0),
+                    "count/impact": acc["count/impact"] + (now["shield/impact"] > 0),
+                    "max/strike_ratio": jnp.maximum(acc["max/strike_ratio"], now["shield/strike_ratio"]),
                 }
             disturbed = disturbed | (m["disturbance"] > 0)
             clean = ~disturbed
@@ -147,6 +153,7 @@ def shield_rollout(
             acc0.update({k: zi for k in ("count/impact_infeasible", "count/over_cap", "count/strikes")})
             acc0["count/impact_active"] = zi
             acc0.update({"count/strike_over_cap": zi, "max/impact_speed": zf, "max/strike_speed": zf})
+            acc0.update({"count/measured_strikes": zi, "count/impact": zi, "max/strike_ratio": zf})
         (_, _, acc), _ = jax.lax.scan(body, (states0, jnp.zeros((batch,), bool), acc0), jnp.arange(steps))
         return acc
 

@@ -39,7 +39,9 @@ too; the shield brakes on the step it flags.
 Per step: ``state.info["violation"] = {"position", "velocity", "torque"}`` (largest excess over the
 step's substeps [rad or m, rad/s or m/s, N m or N]), with ``"jerk"`` too where the robot has ``j_max``
 (``max |a_safe - a_prev| - j_max dt`` [rad/s^2]: the change of the held acceleration from the last step's, as
-``ArmReach`` measures it; ``a_prev`` is 0 after a reset), and ``state.metrics["shield/*"]``: the same,
+``ArmReach`` measures it; ``a_prev`` is 0 after a reset) and ``"impact"`` where an ``ImpactPoint`` names what strikes
+(a strike's measured impulsive joint torque over its bound, less 1, counted once in the step its window closes:
+``envs/strike_record.py``), and ``state.metrics["shield/*"]``: the same,
 ``intervention`` (``max |a_safe - a_des|``), ``saturated``, ``nonfinite``, ``nonviable`` (0/1 per
 step), ``accel_error`` (``max |(v+ - v)/h - a_safe|`` over substeps and joints: contact forces,
 saturation and RK4's second-order error show here) and ``disturbance`` (largest constraint force [N m]
@@ -62,6 +64,7 @@ import warnings
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 with warnings.catch_warnings():
@@ -70,7 +73,7 @@ with warnings.catch_warnings():
     from brax.envs.base import PipelineEnv, State, Wrapper
     from brax.mjx import pipeline as brax_mjx_pipeline
 
-from jaxlimits.envs import mjx_stages, nonfinite_guard
+from jaxlimits.envs import mjx_stages, nonfinite_guard, strike_record
 from jaxlimits.internal import batched_like
 from jaxlimits.envs.actuation import MjxActuation
 from jaxlimits.envs.impact_point import ImpactPoint
@@ -92,8 +95,17 @@ SHIELD_METRICS = VIOLATIONS + (
 )
 # with an impact cap (``impact=``): the cap [m/s], 0/1 where no command inside the bounds and the torques met it,
 # the impact point's largest approach speed along the normal over the step's substeps [m/s], and 0/1 whether the cap
-# applied (``ImpactPoint.surface``: only near it)
-IMPACT_METRICS = ("impact_cap", "impact_infeasible", "impact_speed", "impact_active")
+# applied (``ImpactPoint.surface``: only near it); and the point's strikes, measured (``envs/strike_record.py``): 1.0 in
+# the step a strike's window closes, and its impulsive joint torque over ``tau_imp_max`` and approach speed [m/s] then
+IMPACT_METRICS = (
+    "impact_cap",
+    "impact_infeasible",
+    "impact_speed",
+    "impact_active",
+    "strike",
+    "strike_ratio",
+    "strike_speed",
+)
 # fields a Brax env may have changed on its System after loading (read back into the MjModel copy)
 _SYNCED_FIELDS = (
     "actuator_gear",
@@ -165,6 +177,17 @@ def _mj_model_of(sys):
     return mjm
 
 
+def _contact_joint_force(d, dofs) -> jax.Array:
+    """``(n,)`` the contacts' joint force on the shielded dofs in MJX data ``d`` after its constraint solve [N m or N]:
+    ``efc_J^T efc_force`` over the contact rows (every contact's: a strike's force reaches the joints through the
+    whole arm; the joint-limit rows left out)."""
+    impl = d._impl if hasattr(d, "_impl") else d
+    if impl.efc_J.shape[0] == 0:
+        return jnp.zeros((len(dofs),), d.qvel.dtype)
+    contact = impl.efc_type >= int(mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS)
+    return (jnp.where(contact, impl.efc_force, 0.0) @ impl.efc_J)[np.asarray(dofs)]
+
+
 def _brax_state(sys, d):
     """The Brax fields of the MJX pipeline state (as ``brax.mjx.pipeline.step`` computes them)."""
     x = Transform(pos=d.xpos[1:], rot=d.xquat[1:])
@@ -207,12 +230,19 @@ class JointLimitShield(Wrapper):
         and ``walker2d`` their hips and knees, states outside any guarantee (counted as non-viable otherwise).
       impact: ``None`` or an ``ImpactPoint`` (``envs/impact_point.py``): the impact-aware speed cap on that point's
         approach speed along its normal, one more row of the decision; metrics ``shield/impact_cap``,
-        ``shield/impact_infeasible``, ``shield/impact_speed``, ``shield/impact_active`` (``IMPACT_METRICS``).
+        ``shield/impact_infeasible``, ``shield/impact_speed``, ``shield/impact_active`` (``IMPACT_METRICS``). Its
+        strikes are measured at every substep (``envs/strike_record.py``, the record in ``info["shield_strike"]``):
+        ``info["violation"]["impact"]`` (a strike's measured impulsive joint torque over ``tau_imp_max``, less 1, in
+        the step its window closes) and metrics ``shield/strike`` (1.0 then), ``shield/strike_ratio``,
+        ``shield/strike_speed`` (its approach speed [m/s]). In a strike (its first substep and its open window) an
+        enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding the
+        acceleration in the bounds would push the point on into the surface (measured: a block dropped at the cap
+        struck at 1.45 times its bound with the correction on, ``tests/test_strike_record.py``).
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes: ``robot`` (``Robot``), ``decide`` (``SafeAcceleration``), ``actuation``, ``impact``
     (``impact_point.ImpactModel`` or ``None``), ``violations`` (the kinds ``info["violation"]`` holds: ``VIOLATIONS``,
-    and ``"jerk"`` where the robot has ``j_max``).
+    ``"jerk"`` where the robot has ``j_max``, ``"impact"`` with an impact point).
     """
 
     def __init__(
@@ -257,8 +287,10 @@ class JointLimitShield(Wrapper):
             inside = self.robot.pose_inside(np.asarray(init_q), getattr(base, "_reset_noise_scale", 0.0))
             base.sys = base.sys.replace(init_q=jnp.asarray(inside, init_q.dtype))
         self.impact = None if impact is None else impact.resolve(_mj_model_of(base.sys), self.robot)
-        # the kinds of info["violation"]: jerk where the robot has a jerk limit to measure it against
+        # the kinds of info["violation"]: jerk where the robot has a jerk limit to measure it against, the strikes'
+        # impulsive joint torque where an impact point names what strikes
         self.violations = VIOLATIONS + (("jerk",) if self.robot.limits.j_max is not None else ())
+        self.violations += ("impact",) if self.impact is not None else ()
         self._metric_names = SHIELD_METRICS + self.violations[len(VIOLATIONS) :]
         self._metric_names += IMPACT_METRICS if self.impact is not None else ()
         # MJX computes in float32: the limits keep clear of the servos' ctrl rounding (joint_shield's docstring)
@@ -295,7 +327,8 @@ class JointLimitShield(Wrapper):
     def _shielded_pipeline_step(self, pipeline_state, ctrl):
         if self._pending is None:
             raise RuntimeError("pipeline_step of a shielded env was called outside the env's step")
-        a_prev, replaced = self._pending  # replaced: a NonFiniteActionGuard outside zeroed a non-finite action
+        # replaced: a NonFiniteActionGuard outside zeroed a non-finite action; kept: the strike record (impact=)
+        a_prev, replaced, kept = self._pending
         rob, act = self.robot, self.actuation.with_system(self._base.sys)  # a domain randomisation's System
         dofs, qadr = np.asarray(rob.dof_adr), np.asarray(rob.qpos_adr)
         finite = jnp.isfinite(ctrl)
@@ -318,14 +351,29 @@ class JointLimitShield(Wrapper):
                 )
             return self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, torque, terms), a_des
 
-        def record(d_before, d_after, inv, out, a):
+        def record(d_before, d_after, inv, out, a, strike, touch):
             v0, v1 = d_before.qvel[dofs], d_after.qvel[dofs]
             viol = self.decide.violations(d_after.qpos[qadr], v1)
             inside = self.decide.violations(d_before.qpos[qadr], v0)["position"] <= 0
             extra = {}
-            if self.impact is not None:  # the impact point's approach speed at the substep's start
-                extra["impact_speed"] = self.impact.approach_speed(self.impact.jacobian(act.sys, d_before, dofs), v0)
-            return {
+            if self.impact is not None:  # the impact point's approach speed at the substep's start, its strike
+                imp = self.impact
+                J = imp.jacobian(act.sys, d_before, dofs)
+                extra["impact_speed"] = w0 = imp.approach_speed(J, v0)
+                extra["striking"] = touch
+                strike, _ = strike_record.advance(
+                    strike,
+                    touch,
+                    w0,
+                    imp.approach_speed(J, v1),
+                    d_before.qpos[qadr],
+                    v0,
+                    _contact_joint_force(d_after, dofs),
+                    h,
+                    imp.window_substeps,
+                    imp.stop_fraction,
+                )
+            return strike, {
                 **extra,
                 **viol,
                 # constraint force on the shielded dofs while they are inside their limits (MuJoCo's limit
@@ -343,21 +391,37 @@ class JointLimitShield(Wrapper):
         # leaves unbatched, so a real branch): each stage is compiled once, not once for the first substep and
         # again for the others (MJX's stages dominate the shielded step's compilation).
         def substep(carry, i):
-            dd, dec, a_des = carry
+            dd, dec, a_des, strike = carry
             ds, Ms, fs = act.smooth_stage(dd, ctrl_clean)
             dec, a_des = jax.lax.cond(i == 0, lambda: decide(ds, Ms, fs), lambda: (dec, a_des))
             a = dec.a_safe
             # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
             band = None if not self.correct_contacts else (jnp.minimum(dec.lower, a), jnp.maximum(dec.upper, a))
+            touch = None
+            if self.impact is not None:
+                touch = self.impact.striking(ds)
+                if band is not None and self.impact.enforce:
+                    # not in a strike (its first substep or its open window): the velocity jump is the cap's to bound,
+                    # and holding the acceleration in the band would push the point on into the surface
+                    in_strike = touch & ((strike["hit"] == 0) | (strike["open"] > 0))
+                    band = tuple(jnp.where(in_strike, jnp.inf * side, b) for side, b in zip((-1.0, 1.0), band))
             dn, inv, out = act.finish_substep(ds, Ms, fs, a, band)
-            return (dn, dec, a_des), record(ds, dn, inv, out, a)
+            strike, rec = record(ds, dn, inv, out, a, strike, touch)
+            return (dn, dec, a_des, strike), rec
 
         dtype = pipeline_state.qvel.dtype
         vec, flag = jnp.zeros((rob.n,), dtype), jnp.zeros((), bool)
         zero = jnp.zeros((), dtype)
         dec0 = Decision(vec, vec, vec, jnp.zeros((rob.n,), bool), flag, flag, zero, zero, flag)
-        init = batched_like((pipeline_state, dec0, vec), pipeline_state.qpos)  # one batching round under vmap
-        (d_end, dec, a_des), recs = jax.lax.scan(substep, init, jnp.arange(self.n_frames))
+        strike0 = None
+        if kept is not None:  # the record a step starts from: afresh at an episode's first step (time 0: also after
+            # Brax's AutoResetWrapper, which restores the reset's pipeline_state but not info), re-armed after a strike
+            first_step = pipeline_state.time == 0
+            fresh = strike_record.fresh(rob.n, jnp.where(first_step, 0.0, kept["struck"]))
+            strike0 = strike_record.start_step(kept, fresh, first_step)
+        # one batching round under vmap
+        init = batched_like((pipeline_state, dec0, vec, strike0), pipeline_state.qpos)
+        (d_end, dec, a_des, strike_end), recs = jax.lax.scan(substep, init, jnp.arange(self.n_frames))
         a = dec.a_safe
         rec = {k: jnp.max(v) for k, v in recs.items()}
         finite_des = jnp.isfinite(a_des)
@@ -369,11 +433,18 @@ class JointLimitShield(Wrapper):
         if "jerk" in self.violations:  # float32, as the decision and ArmReach's measure
             step_max = jnp.asarray(rob.limits.j_max, jnp.float32) * jnp.float32(self.decide.dt)
             rec["jerk"] = jnp.maximum(jnp.max(jnp.abs(a.astype(jnp.float32) - a_prev) - step_max), 0.0)
+        strike = None
         if self.impact is not None:
             rec["impact_cap"] = dec.impact_cap
             rec["impact_active"] = dec.impact_active
             rec["impact_infeasible"] = SafeAcceleration.impact_unmet(dec)
-        self._outputs = (rec, dec, a_des)
+            imp = self.impact
+            strike, figures = strike_record.finish(
+                strike0, strike_end, rec.pop("striking"), imp.dt_impact, imp.tau_imp_max
+            )
+            rec.update(strike=figures["strike"], strike_ratio=figures["ratio"], strike_speed=figures["speed"])
+            rec["impact"] = figures["excess"]
+        self._outputs = (rec, dec, a_des, strike)
         return _brax_state(self._base.sys, d_end)
 
     # ---- Brax Env interface -------------------------------------------------------------------
@@ -391,6 +462,8 @@ class JointLimitShield(Wrapper):
         info = dict(state.info)
         info["shield_a_prev"] = jnp.zeros((n,), jnp.float32)
         info["violation"] = {k: zero for k in self.violations}
+        if self.impact is not None:
+            info["shield_strike"] = strike_record.fresh(n)
         metrics = dict(state.metrics)
         metrics.update({f"shield/{k}": zero for k in self._metric_names})
         return state.replace(info=info, metrics=metrics)
@@ -398,16 +471,19 @@ class JointLimitShield(Wrapper):
     @_mjx_tracing
     def _shielded_step(self, state: State, action: jax.Array) -> State:
         replaced = jnp.asarray(state.info.get(nonfinite_guard.FLAG, False), bool)
-        self._pending, self._outputs = (state.info["shield_a_prev"], replaced), None
+        kept = state.info["shield_strike"] if self.impact is not None else None
+        self._pending, self._outputs = (state.info["shield_a_prev"], replaced, kept), None
         try:
             nstate = self._env_step(state, action)
             if self._outputs is None:
                 raise RuntimeError("the wrapped env's step did not call pipeline_step")
-            rec, dec, _ = self._outputs
+            rec, dec, _, strike = self._outputs
         finally:
             self._pending = self._outputs = None
         info = dict(nstate.info)
         info["shield_a_prev"] = dec.a_safe.astype(jnp.float32)
+        if strike is not None:
+            info["shield_strike"] = strike
         info["violation"] = {k: rec[k].astype(jnp.float32) for k in self.violations}
         metrics = dict(nstate.metrics)
         metrics.update({f"shield/{k}": jnp.asarray(rec[k], jnp.float32) for k in self._metric_names})

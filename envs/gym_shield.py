@@ -76,6 +76,7 @@ from gymnasium.envs.mujoco.mujoco_env import MujocoEnv
 from jaxlimits.envs.actuation import CActuation, TorqueModel, as_slice
 from jaxlimits.envs.content_cache import LruCache
 from jaxlimits.envs.fork_guard import check_not_forked_from_jax
+from jaxlimits.envs import strike_record
 from jaxlimits.envs.impact_point import ImpactPoint
 from jaxlimits.envs.joint_shield import BOUNDS_TOL, RK4_MARGIN, RK4_RESTEP, SafeAcceleration
 from jaxlimits.envs.robot import Robot
@@ -85,12 +86,13 @@ MJ_MAXVAL = mujoco.mjMAXVAL  # mju_isBad(x) is NaN or |x| > mjMAXVAL (1e10)
 _REQUIRED = ("model", "data", "do_simulation", "frame_skip")
 
 
-def _zero_tally() -> dict:
+def _zero_tally(violations=VIOLATIONS) -> dict:
+    """The counters of ``JointLimitShieldWrapper.tally``: ``<k>_violations`` and ``max_<k>_excess`` per kind of
+    ``violations``, the rest fixed (``strikes``, ``max_strike_ratio``: an impact point's measured strikes)."""
     return {
         "steps": 0,
-        "position_violations": 0,
-        "velocity_violations": 0,
-        "torque_violations": 0,
+        **{f"{k}_violations": 0 for k in violations},
+        **{f"max_{k}_excess": 0.0 for k in violations},
         "saturated": 0,
         "nonfinite": 0,
         "nonviable": 0,
@@ -102,9 +104,8 @@ def _zero_tally() -> dict:
         "starts_outside": 0,
         "impact_infeasible": 0,
         "max_impact_speed": 0.0,
-        "max_position_excess": 0.0,
-        "max_velocity_excess": 0.0,
-        "max_torque_excess": 0.0,
+        "strikes": 0.0,
+        "max_strike_ratio": 0.0,
         "max_accel_error": 0.0,
         "max_intervention": 0.0,
         "max_beyond_bounds": 0.0,
@@ -170,7 +171,12 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         approach speed along its normal, one more row of the decision; ``info["shield"]`` gets ``impact_cap``
         [m/s], ``impact_infeasible`` (no command inside the bounds and the torques met it), ``impact_speed``
         (the point's largest approach speed over the step's substeps [m/s]) and ``impact_active`` (the cap applied:
-        ``ImpactPoint.surface`` given, only near it).
+        ``ImpactPoint.surface`` given, only near it); and its strikes, measured at every substep
+        (``envs/strike_record.py``): ``info["violation"]["impact"]`` (a strike's measured impulsive joint torque over
+        ``tau_imp_max``, less 1, in the step its window closes), ``info["shield"]`` ``strike`` (1.0 then),
+        ``strike_ratio`` and ``strike_speed`` (its approach speed [m/s]). In a strike (its first substep and its open
+        window) an enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding
+        the acceleration in the bounds would push the point on into the surface.
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
     Attributes:
@@ -186,7 +192,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         ``max_torque_excess`` [N m or N], ``max_accel_error`` [rad/s^2], ``max_intervention`` [rad/s^2],
         and ``beyond_bounds``, ``contact_corrected`` (steps) with their largest values (``max_*``), and
         ``starts_outside`` (resets whose state lay outside the limits, ``reset``); with ``impact``,
-        ``impact_infeasible`` (steps) and ``max_impact_speed`` [m/s].
+        ``impact_infeasible`` (steps), ``max_impact_speed`` [m/s], ``impact_violations``, ``max_impact_excess``,
+        ``strikes`` and ``max_strike_ratio``.
+      violations: the kinds ``info["violation"]`` holds: ``VIOLATIONS``, ``"jerk"`` where the robot has ``j_max``, and
+        ``"impact"`` with an impact point.
 
     Raises ``TypeError`` for an env that is not a MuJoCo env, ``ValueError`` (from ``Robot.from_model``
     / ``SafeAcceleration``) naming the joint, actuator or field that is missing or unsupported.
@@ -271,7 +280,15 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         self._joint_ids = np.asarray(rob.joint_ids)
         self._jtf = np.zeros(int(base.model.nv))  # J^T f buffer of ``_disturbed``
         self.a_prev = np.zeros(n, np.float32)
-        self.tally = _zero_tally()
+        # the kinds of info["violation"]: the strikes' impulsive joint torque too where an impact point names what
+        # strikes (measured per substep, envs/strike_record.py)
+        self.violations = VIOLATIONS + (("jerk",) if lim.j_max is not None else ())
+        self.violations += ("impact",) if self.impact is not None else ()
+        # the jerk measured where the robot has j_max: the change of the held acceleration beyond j_max dt [rad/s^2]
+        self._j_max = None if lim.j_max is None else np.asarray(lim.j_max, np.float32)
+        self._strike = None if self.impact is None else strike_record.fresh(n, xp=np)
+        self._efc_contact = np.zeros(0)  # the contact rows' forces (buffer of ``_contact_joint_force``)
+        self.tally = _zero_tally(self.violations)
         self._records = []
         self._bufs = {}
         self._brake = False  # brake_on_next_step
@@ -376,7 +393,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             *(x.astype(f32) for x in impact_terms),
         )
         out = np.asarray(out)
-        self.a_prev = out[:n]  # a fresh host array per call
+        a_prev, self.a_prev = self.a_prev, out[:n]  # a fresh host array per call
         a_safe = out[:n].astype(np.float64)
         lower, upper = out[n : 2 * n].astype(np.float64), out[2 * n : 3 * n].astype(np.float64)
         # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
@@ -387,13 +404,38 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         corrected = 0.0
         disturbed = False
         speed = -np.inf
+        if imp is not None:  # the strike record this call starts from (re-armed after a closed strike)
+            kept = self._strike
+            strike0 = strike_record.start_step(kept, strike_record.fresh(n, kept["struck"], np), False, np)
+            strike, touched = strike0, False
         for k in range(n_frames):
             if k:
                 _, M, f = act.smooth_stage(d, ctrl, want_a_des=False)
-            if imp is not None:  # the point's approach speed at the substep's start
+            band_k = band
+            if imp is not None:  # the point's approach speed at the substep's start, and whether it touches
                 J = impact_terms[1] if k == 0 else imp.c_jacobian(m, d, dofs)
-                speed = max(speed, float(imp.normal @ (J @ d.qvel[dofs])))
-            inv, out_k = act.finish_substep(d, M, f, a_safe, band, rk4_tol)
+                w0 = float(imp.normal @ (J @ d.qvel[dofs]))
+                speed = max(speed, w0)
+                touch = imp.c_striking(d)
+                touched |= touch
+                if touch and imp.enforce and (strike["hit"] == 0 or strike["open"] > 0):
+                    band_k = None  # in a strike the jump is the cap's to bound (as JointLimitShield)
+                q0, v0 = d.qpos[qadr].copy(), d.qvel[dofs].copy()
+            inv, out_k = act.finish_substep(d, M, f, a_safe, band_k, rk4_tol)
+            if imp is not None:
+                strike, _ = strike_record.advance(
+                    strike,
+                    np.bool_(touch),
+                    w0,
+                    float(imp.normal @ (J @ d.qvel[dofs])),
+                    q0,
+                    v0,
+                    self._contact_joint_force(m, d),
+                    self._h,
+                    imp.window_substeps,
+                    imp.stop_fraction,
+                    np,
+                )
             if out_k is not None:
                 out_k = np.abs(out_k)
                 corrected = max(corrected, float(np.max(out_k, where=out_k > self._correct_tol, initial=0.0)))
@@ -436,11 +478,34 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 "beyond_bounds": max(float(np.maximum(a_safe - upper, lower - a_safe).max()), 0.0),
             }
         )
+        if self._j_max is not None:  # float32, as the decision and the Brax shield's measure
+            jerk = np.max(np.abs(self.a_prev - a_prev) - self._j_max * np.float32(self._h * n_frames))
+            self._records[-1]["jerk"] = max(float(jerk), 0.0)
         if imp is not None:
             cap, infeasible, active = float(out[4 * n + 2]), bool(out[4 * n + 3] > 0.5), bool(out[4 * n + 4] > 0.5)
+            self._strike, fig = strike_record.finish(strike0, strike, touched, imp.dt_impact, imp.tau_imp_max, np)
             self._records[-1].update(
-                impact_cap=cap, impact_infeasible=infeasible, impact_speed=speed, impact_active=active
+                impact_cap=cap,
+                impact_infeasible=infeasible,
+                impact_speed=speed,
+                impact_active=active,
+                impact=float(fig["excess"]),
+                strike=float(fig["strike"]),
+                strike_ratio=float(fig["ratio"]),
+                strike_speed=float(fig["speed"]),
             )
+
+    def _contact_joint_force(self, m, d) -> np.ndarray:
+        """``(n,)`` the contacts' joint force on the shielded dofs in this substep's constraint solve [N m or N]
+        (``J^T f`` over the contact rows; the joint-limit rows left out), as ``JointLimitShield`` measures it."""
+        nefc = d.nefc
+        if nefc == 0:
+            return np.zeros(self._n)
+        force = np.where(
+            d.efc_type[:nefc] >= int(mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS), d.efc_force[:nefc], 0.0
+        )
+        mujoco.mj_mulJacTVec(m, d, self._jtf, force)
+        return self._jtf[self._dofs].copy()
 
     def _disturbed(self, m, d) -> bool:
         """Did a constraint force other than the shielded joints' own limit rows act on a shielded dof this
@@ -481,6 +546,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         ``start_inside=True`` moves the env's initial pose inside)."""
         self.a_prev = np.zeros(self._n, np.float32)
         self._records = []
+        if self.impact is not None:  # an episode's strikes are measured afresh
+            self._strike = strike_record.fresh(self._n, xp=np)
         obs, info = self.env.reset(seed=seed, options=options)
         self.actuation.refresh()
         info = dict(info)
@@ -492,7 +559,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         """``env.step(action)`` with ``info["violation"]`` and ``info["shield"]`` added (module docstring).
 
         ``info["violation"]``: ``{"position", "velocity", "torque"}`` -> float, the largest excess over the
-        step's substeps [rad or m, rad/s or m/s, N m or N], 0.0 when none. ``info["shield"]``:
+        step's substeps [rad or m, rad/s or m/s, N m or N], 0.0 when none; ``"jerk"`` too where the robot has
+        ``j_max`` (``max |a_safe - a_prev| - j_max dt`` [rad/s^2], float32, as the Brax shield's), ``"impact"`` with an
+        impact point (``violations``). ``info["shield"]``:
         ``intervention`` (``max |a_safe - a_des|`` over the finite entries [rad/s^2]), ``saturated``,
         ``nonfinite``, ``viable``, ``constrained``, ``torque_conflict`` (bools; ``constrained``: a contact or
         limit force acted on a shielded dof in some substep; ``disturbance``: one other than the shielded
@@ -516,6 +585,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             raise RuntimeError("the wrapped env's step did not call do_simulation")
         rec = dict(recs[-1])
         for r in recs[:-1]:
+            if "jerk" in rec:
+                rec["jerk"] = max(rec["jerk"], r["jerk"])
             for k in (
                 "position",
                 "velocity",
@@ -529,17 +600,21 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             for k in ("saturated", "nonfinite", "constrained", "disturbance", "torque_conflict"):
                 rec[k] = rec[k] or r[k]
             if self.impact is not None:
+                rec["impact"] = max(rec["impact"], r["impact"])
+                rec["strike"] += r["strike"]
+                rec["strike_ratio"] = max(rec["strike_ratio"], r["strike_ratio"])
+                rec["strike_speed"] = max(rec["strike_speed"], r["strike_speed"])
                 rec["impact_cap"] = min(rec["impact_cap"], r["impact_cap"])
                 rec["impact_speed"] = max(rec["impact_speed"], r["impact_speed"])
                 rec["impact_infeasible"] = rec["impact_infeasible"] or r["impact_infeasible"]
                 rec["impact_active"] = rec["impact_active"] or r["impact_active"]
             rec["viable"] = rec["viable"] and r["viable"]
         info = dict(info)
-        info["violation"] = {k: rec[k] for k in VIOLATIONS}
-        info["shield"] = {k: v for k, v in rec.items() if k not in VIOLATIONS}
+        info["violation"] = {k: rec[k] for k in self.violations}
+        info["shield"] = {k: v for k, v in rec.items() if k not in self.violations}
         t = self.tally
         t["steps"] += 1
-        for k in VIOLATIONS:
+        for k in self.violations:
             t[f"{k}_violations"] += rec[k] > 0.0
             t[f"max_{k}_excess"] = max(t[f"max_{k}_excess"], rec[k])
         t["saturated"] += rec["saturated"]
@@ -557,6 +632,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         if self.impact is not None:
             t["impact_infeasible"] += rec["impact_infeasible"]
             t["max_impact_speed"] = max(t["max_impact_speed"], rec["impact_speed"])
+            t["strikes"] += rec["strike"]
+            t["max_strike_ratio"] = max(t["max_strike_ratio"], rec["strike_ratio"])
         return obs, reward, terminated, truncated, info
 
     def brake_on_next_step(self) -> None:
@@ -566,4 +643,4 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
 
     def reset_tally(self) -> None:
         """Zero ``tally``."""
-        self.tally = _zero_tally()
+        self.tally = _zero_tally(self.violations)

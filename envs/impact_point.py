@@ -59,6 +59,9 @@ class ImpactPoint(NamedTuple):
       cap (``ImpactModel.halfspace``): a robot far from the surface moves freely.
     clearance: [m] how far the striking geometry reaches past the point toward the surface (e.g. a capsule's radius
       and half-length around a body's origin), taken off the distance.
+    window, stop_fraction: the strike measurement (``envs/strike_record.py``): a strike's window opens at the first
+      physics substep in which a geom of the point's body (or of a body it carries) touches, and closes once the
+      point's approach speed has fallen below ``stop_fraction`` of its value then, at most ``window`` [s] later.
     """
 
     point: str
@@ -71,6 +74,8 @@ class ImpactPoint(NamedTuple):
     enforce: bool = True
     surface: object = None
     clearance: float = 0.0
+    window: float = 0.02
+    stop_fraction: float = 0.1
 
     def resolve(self, mj_model: mujoco.MjModel, robot) -> "ImpactModel":
         """The checked, numeric form for ``robot`` (a ``Robot`` of ``mj_model``). Raises ``ValueError`` naming the
@@ -113,6 +118,11 @@ class ImpactPoint(NamedTuple):
             raise ValueError(f"ImpactPoint.surface must be None or a finite 3-vector, got {self.surface!r}")
         if not (np.isfinite(float(self.clearance)) and float(self.clearance) >= 0):
             raise ValueError(f"ImpactPoint.clearance must be finite and >= 0, got {self.clearance!r}")
+        if not (np.isfinite(float(self.window)) and float(self.window) > 0):
+            raise ValueError(f"ImpactPoint.window must be finite and > 0, got {self.window!r}")
+        if not 0.0 < float(self.stop_fraction) < 1.0:
+            raise ValueError(f"ImpactPoint.stop_fraction must be in (0, 1), got {self.stop_fraction!r}")
+        window_substeps = max(1, int(round(float(self.window) / float(mj_model.opt.timestep))))
         return ImpactModel(
             site,
             body,
@@ -125,7 +135,20 @@ class ImpactPoint(NamedTuple):
             self.enforce,
             surface,
             float(self.clearance),
+            window_substeps,
+            float(self.stop_fraction),
+            striking_geoms(mj_model, body),
         )
+
+
+def striking_geoms(mj_model: mujoco.MjModel, body: int) -> np.ndarray:
+    """``(ngeom,)`` bool: the geoms of ``body`` and of every body it carries (its subtree), those whose contacts are
+    the point's strikes."""
+    in_subtree = np.zeros(mj_model.nbody, bool)
+    in_subtree[body] = True
+    for b in range(body + 1, mj_model.nbody):  # a body's parent has a smaller index
+        in_subtree[b] = in_subtree[mj_model.body_parentid[b]]
+    return in_subtree[mj_model.geom_bodyid]
 
 
 def peak_torque(robot) -> np.ndarray:
@@ -178,7 +201,8 @@ def _digest(x):
 class ImpactModel(NamedTuple):
     """``ImpactPoint`` resolved against a model: ``site`` (-1: the body's origin), ``body``, the unit ``normal``,
     ``c_max``, ``dt_impact`` [s], ``tau_imp_max`` ``(n,)`` [N m], ``margin``, ``contact``, ``enforce``, ``surface``
-    (``(3,)`` or None), ``clearance`` [m]."""
+    (``(3,)`` or None), ``clearance`` [m], the strike measurement's ``window_substeps`` and ``stop_fraction``, and
+    ``strike_geoms`` ``(ngeom,)`` bool (``striking_geoms``)."""
 
     site: int
     body: int
@@ -191,6 +215,9 @@ class ImpactModel(NamedTuple):
     enforce: bool
     surface: object
     clearance: float
+    window_substeps: int
+    stop_fraction: float
+    strike_geoms: np.ndarray
 
     def point_position(self, d) -> jax.Array:
         """``(3,)`` the point in the world at ``d``'s kinematics (MJX data after ``fwd_position``)."""
@@ -282,9 +309,24 @@ class ImpactModel(NamedTuple):
         J, J_rate = self.c_jacobian(model, data, dofs), self.c_jacobian(model, data, dofs, True)
         return M[dofs, :][:, dofs], J, J_rate, np.array(point)
 
+    def c_striking(self, data: mujoco.MjData) -> bool:
+        """``striking`` from C MuJoCo: a geom of the point's subtree penetrates in ``data``'s contacts."""
+        c = data.contact
+        mask = self.strike_geoms
+        return bool(np.any((c.dist < 0) & (mask[c.geom1] | mask[c.geom2]))) if data.ncon else False
+
     def key(self) -> tuple:
         """A hashable digest of every field (a compiled decision's cache key; the contact model's own ``key``)."""
         return tuple(_digest(x) for x in self)
+
+    def striking(self, d) -> jax.Array:
+        """``()`` bool: a geom of the point's subtree is in contact (penetrating) in MJX data ``d`` (after collision)."""
+        impl = d._impl if hasattr(d, "_impl") else d
+        if impl.ncon == 0:
+            return jnp.zeros((), bool)
+        c = impl.contact
+        mask = jnp.asarray(self.strike_geoms)
+        return jnp.any((c.dist < 0) & (mask[c.geom1] | mask[c.geom2]))
 
     def approach_speed(self, J, v) -> jax.Array:
         """``()`` the point's speed along ``normal`` [m/s] for joint velocity ``v`` (positive: approaching)."""

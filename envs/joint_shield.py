@@ -166,7 +166,7 @@ class SafeAcceleration:
                 raise ValueError("this shield has an impact cap: pass impact_terms=(M, J, J_rate, point)")
             G, h, cap, u, active = self.impact.halfspace(*impact_terms, q_eff, v, lim, self.dt, b.lower, b.upper)
             rows = (G, h)
-        measured, a_free = rows, a_in
+        measured = rows
         if rows is not None and not self.impact.enforce:
             rows = None  # measured only: the excess below is what the decision without the cap gives
         if rows is not None:  # the command's excess removed along u first
@@ -183,18 +183,22 @@ class SafeAcceleration:
             hard = dict(kwargs, method="viability" if self.method == "jerk" else self.method)
             hard.pop("a_prev", None)
             terms = jl.bound_terms(q_eff, v, lim, self.dt, **hard)
-            a_safe, conflict = self._torque_space(a_in, b, terms, torque, rows, a_free)
+            a_safe, conflict = self._torque_space(a_in, b, terms, torque, rows)
         excess = jnp.zeros_like(cap)
         if measured is not None:
             G, h = measured
             excess = jnp.maximum(jnp.einsum("...n,...n->...", G[..., 0, :], a_safe) - h[..., 0], 0.0)
         return Decision(a_safe, b.lower, b.upper, b.viable, bad[..., 0], conflict, cap, excess, active)
 
-    def _torque_space(self, a_in, b, terms, torque, impact_rows=None, a_free=None):
+    def _torque_space(self, a_in, b, terms, torque, impact_rows=None):
         """The torque-space decision (see ``__call__``) and its conflict rule; returns ``(a_safe, conflict)``.
         ``impact_rows``: ``(G (1, n), h (1,))`` the impact cap's row in the acceleration, added to step 1's rows
-        (where it makes step 1 infeasible, step 1 runs again without it, from ``a_free``, the command before the
-        cap's correction: the cap is the first to give way).
+        (where it makes step 1 infeasible, step 1 runs again without it, from the same command ``a_in``, whose
+        excess over the row was removed along ``u``: the cap is the first to give way, and the answer is the
+        realisable acceleration nearest to the one meeting it, braking the point as hard as the bounds and the
+        torques allow. From the command before that correction, as before, a point approaching too fast for the
+        cap to be met in one step was not braked at all: measured on a block dropped on a floor,
+        ``tests/test_strike_record.py``).
 
         1. ``tau_des = M a_des - f`` projected onto the torque box and the bounds as halfspaces
            ``lower <= M^-1 (tau + f) <= upper``: the nearest realisable acceleration inside the bounds
@@ -251,7 +255,7 @@ class SafeAcceleration:
             ok = jnp.all(jnp.isfinite(a), axis=-1) & res.converged
             return a, res.infeasible | ~ok
 
-        a_c = jnp.clip(a_in if a_free is None else a_free, b.lower, b.upper)
+        a_c = jnp.clip(a_in, b.lower, b.upper)
 
         # from the command itself, not its clip: from the clip, the nearest realisable point in this metric
         # let a light joint drift against its command (measured: Pusher-v5's shoulder pan ran to its lower
@@ -264,11 +268,10 @@ class SafeAcceleration:
 
         a_full, fail_full = first(a_in, impact_rows)
         if impact_rows is not None:  # the cap gives way first: step 1 again without its row where it failed
-            a_free = a_in if a_free is None else a_free
             if jnp.ndim(fail_full) == 0:
-                a_full, fail_full = jax.lax.cond(fail_full, lambda: first(a_free), lambda: (a_full, fail_full))
+                a_full, fail_full = jax.lax.cond(fail_full, lambda: first(a_in), lambda: (a_full, fail_full))
             else:
-                a_nocap, fail_nocap = first(a_free)
+                a_nocap, fail_nocap = first(a_in)
                 a_full = jnp.where(fail_full[..., None], a_nocap, a_full)
                 fail_full = fail_full & fail_nocap
         hard_up = _reduce(jnp.minimum, terms["upper"], b.upper)

@@ -54,7 +54,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from jaxlimits.envs import mjx_stages
+from jaxlimits.envs import mjx_stages, strike_record
 
 import jaxlimits.impact as _impact
 from jaxlimits.envs.actuation import contact_correction
@@ -287,20 +287,13 @@ class WallStrike(ArmReach):
         return State(d, self._obs(d, wall), zero, zero, metrics, info)
 
     def _fresh_impact(self, d, struck=None) -> dict:
-        """An armed impact record (no strike measured yet) at ``d`` (positions computed); ``struck``: whether
-        the episode has struck before (kept across records: the task's success)."""
+        """An armed impact record (``strike_record.fresh``, no strike measured yet) at ``d`` (positions computed), with
+        this env's own fields: the joint momentum change and largest joint speeds over the window, the ball's centre
+        and last normal velocity; ``struck``: whether the episode has struck before (the task's success)."""
         zero = jnp.zeros((), jnp.float32)
         zn = jnp.zeros((self.n,), jnp.float32)
         return {
-            "struck": zero if struck is None else struck,
-            "hit": zero,
-            "off": jnp.ones((), jnp.float32),
-            "k": zero,
-            "open": jnp.ones((), jnp.float32),
-            "w": zero,
-            "q_pre": zn,
-            "v_pre": zn,
-            "impulse": zn,
+            **strike_record.fresh(self.n, struck),
             "momentum": zn,
             "vmax": zn,
             "ball_prev": self._ball_center(d),
@@ -351,31 +344,27 @@ class WallStrike(ArmReach):
         d = mjx_stages.implicit(self.sys, d) if self._implicit else mjx_stages.euler(self.sys, d)
         ball = self._ball_center(mjx_stages.kinematics(self.sys, d))
         nrm = jnp.asarray(self.normal, jnp.float32)
-        # impact bookkeeping
-        first = (imp["hit"] == 0) & in_contact
+        # impact bookkeeping (strike_record): the ball's normal velocity is the finite difference of its centre over
+        # the substep, so the approach speed before it is the last substep's
         w_now = jnp.sum((ball - imp["ball_prev"]) * nrm) / self.h
-        hit = jnp.where(in_contact, 1.0, imp["hit"])
-        # the window: from the first contact until the ball's normal velocity has dropped below
-        # stop_fraction of its impact value (the compression phase: the rigid model's impact), at
-        # most window_substeps; "open" flips to 0 once and stays there
-        w_hit = jnp.where(first, imp["w_last"], imp["w"])
-        stopped = (hit > 0) & (w_now <= self.stop_fraction * w_hit)
-        in_window = (hit > 0) & (imp["open"] > 0)
-        new = {
-            "struck": jnp.maximum(imp["struck"], hit),
-            "hit": hit,
-            "off": imp["off"],  # set per step in step_acc
-            "k": imp["k"] + in_window.astype(jnp.float32),
-            "open": jnp.where(in_window & (stopped | (imp["k"] + 1 >= self.window_substeps)), 0.0, imp["open"]),
-            "w": w_hit,
-            "q_pre": jnp.where(first, q_before, imp["q_pre"]),
-            "v_pre": jnp.where(first, v_before, imp["v_pre"]),
-            "impulse": imp["impulse"] + jnp.where(in_window, frc * self.h, 0.0),
-            "momentum": imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),
-            "vmax": jnp.where(in_window | (hit > 0), jnp.maximum(imp["vmax"], jnp.abs(d.qvel)), imp["vmax"]),
-            "ball_prev": ball,
-            "w_last": w_now,
-        }
+        new, in_window = strike_record.advance(
+            imp,
+            in_contact,
+            imp["w_last"],
+            w_now,
+            q_before,
+            v_before,
+            frc,
+            self.h,
+            self.window_substeps,
+            self.stop_fraction,
+        )
+        new.update(
+            momentum=imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),
+            vmax=jnp.where(in_window | (new["hit"] > 0), jnp.maximum(imp["vmax"], jnp.abs(d.qvel)), imp["vmax"]),
+            ball_prev=ball,
+            w_last=w_now,
+        )
         return (d, new), (d.qpos, d.qvel, d.qacc, tau, in_contact.astype(jnp.float32), frc * self.h)
 
     def _actuate(self, d, tau):
@@ -397,9 +386,8 @@ class WallStrike(ArmReach):
         # step (no substep in contact), the record re-arms, so the next contact (a re-strike after a bounce or a
         # pull-back) is measured too
         first_step = d0.time == 0
-        rearm = (kept["hit"] > 0) & (kept["open"] == 0) & (kept["off"] > 0)
         fresh = self._fresh_impact(d0, struck=jnp.where(first_step, 0.0, kept["struck"]))
-        imp0 = jax.tree.map(lambda f, k: jnp.where(first_step | rearm, f, k), fresh, kept)
+        imp0 = strike_record.start_step(kept, fresh, first_step)
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
             lambda c, _: self._substep_contact(c, a, band), (d0, imp0), None, length=self.frame_skip
         )
@@ -417,25 +405,21 @@ class WallStrike(ArmReach):
         in_contact = jnp.max(contact)
         metrics["contact"] = in_contact
         metrics["disturbance"] = in_contact  # the evaluator's name: a contact acted on the arm in this step
-        imp = dict(imp, off=1.0 - in_contact)
         spec = self.impact
+        imp, strike = strike_record.finish(imp0, imp, in_contact, spec.dt_impact, spec.tau_imp_max)
         metrics["impact/hit"] = imp["hit"]
         metrics["impact/w"] = imp["w"]
-        metrics["impact/tau"] = jnp.max(jnp.abs(imp["momentum"]) / spec.dt_impact / f(spec.tau_imp_max))
-        metrics["impact/tau_contact"] = jnp.max(jnp.abs(imp["impulse"]) / spec.dt_impact / f(spec.tau_imp_max))
+        metrics["impact/tau"] = strike_record.impulsive_ratio(imp["momentum"], spec.dt_impact, spec.tau_imp_max)
+        metrics["impact/tau_contact"] = strike_record.impulsive_ratio(imp["impulse"], spec.dt_impact, spec.tau_imp_max)
         metrics["impact/v_post"] = jnp.max(imp["vmax"] / f(lim.v_max))
         # a strike is counted once, in the step its window closes: a violation when the impulsive joint torque
         # of its contact impulse (J^T p / dt_impact, the paper's J^T F; the motors' own torque over the window
         # left out) exceeds the bound (excess as a fraction of the bound)
-        closed = (imp0["open"] > 0) & (imp["open"] == 0)
-        over = jnp.where(closed, jnp.maximum(metrics["impact/tau_contact"] - 1.0, 0.0), zero)
-        metrics["violation/impact"] = over
-        metrics["count/impact"] = (over > 0).astype(jnp.float32)
-        metrics["strike"] = closed.astype(jnp.float32)
+        metrics["violation/impact"] = strike["excess"]
+        metrics["count/impact"] = (strike["excess"] > 0).astype(jnp.float32)
+        metrics["strike"] = strike["strike"]
+        metrics["strike_ratio"] = strike["ratio"]  # measured / bound, once a strike
         metrics["success"] = imp["struck"]  # the task: strike the wall (the evaluator's success)
-        metrics["strike_ratio"] = jnp.where(
-            closed, metrics["impact/tau_contact"], zero
-        )  # measured / bound, once a strike
         # normal impulse delivered this step [N s]: the wall's impulse on the ball from the joint impulse,
         # J^T p = sum(qfrc_constraint) h, solved in the least-squares sense (regularised)
         Jee = self.ee_jacobian_at(d0)  # d0: a state's pipeline_state, its position stage computed

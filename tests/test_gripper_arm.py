@@ -9,10 +9,9 @@ import warnings
 
 import numpy as np
 import pytest
-from gymnasium.envs.mujoco import MujocoEnv
-from gymnasium.spaces import Box
 
 from jaxlimits.envs.gym import JointLimitShieldWrapper
+from small_mujoco_env import SmallMujocoEnv
 
 XML = """
 <mujoco>
@@ -43,24 +42,9 @@ XML = """
 </mujoco>"""
 
 
-class GripperArm(MujocoEnv):
+def GripperArm(path):
     """The smallest Gymnasium ``MujocoEnv`` over ``XML``: 5 substeps per step, no reward."""
-
-    metadata = {"render_modes": ["human", "rgb_array", "depth_array", "rgbd_tuple"], "render_fps": 100}
-
-    def __init__(self, path):
-        MujocoEnv.__init__(self, str(path), 5, observation_space=Box(-np.inf, np.inf, (8,), np.float64))
-
-    def step(self, action):
-        self.do_simulation(action, self.frame_skip)
-        return self._get_obs(), 0.0, False, False, {}
-
-    def _get_obs(self):
-        return np.concatenate([self.data.qpos, self.data.qvel])
-
-    def reset_model(self):
-        self.set_state(self.init_qpos, self.init_qvel)
-        return self._get_obs()
+    return SmallMujocoEnv(path)
 
 
 @pytest.fixture(scope="module")

@@ -445,6 +445,33 @@ def test_jerk_method_uses_the_previous_acceleration():
     assert env.tally["position_violations"] == env.tally["velocity_violations"] == 0
 
 
+@pytest.mark.parametrize("method", ["jerk", "viability"])
+def test_the_jerk_is_measured_where_the_robot_has_a_jerk_limit(method):
+    """``info["violation"]["jerk"]`` = ``max |a_safe - a_prev| - j_max dt`` (float32, the Brax shield's measure),
+    recomputed from the decisions of a bang-bang rollout: 0 under the jerk shield, positive under viability (which
+    does not bound the jerk); none recorded without ``j_max``."""
+    env = _make("Reacher-v5", method=method, a_max=20.0, j_max=1e3)  # j_max dt < 2 a_max: breakable
+    assert env.violations == ("position", "velocity", "torque", "jerk")
+    j_step = np.float32(1e3) * np.float32(env.robot.timestep * env.unwrapped.frame_skip)
+    lo, hi = env.action_space.low, env.action_space.high
+    env.reset(seed=0)
+    prev = np.zeros(2, np.float32)
+    recorded, recomputed = [], []
+    for i in range(300):
+        info = env.step(hi if (i // 7) % 2 else lo)[-1]
+        a = info["shield"]["a_safe"].astype(np.float32)  # the float32 decision, widened
+        recorded.append(info["violation"]["jerk"])
+        recomputed.append(max(float(np.max(np.abs(a - prev) - j_step)), 0.0))
+        prev = a
+    np.testing.assert_array_equal(recorded, recomputed)
+    assert env.tally["jerk_violations"] == sum(r > 0 for r in recorded)
+    if method == "jerk":
+        assert max(recorded) == 0.0
+    else:
+        assert np.mean(np.asarray(recorded) > 0) > 0.05
+    assert "jerk" not in _make("Reacher-v5").violations
+
+
 def test_a_contact_correction_never_leaves_the_band_further_than_none():
     """Pusher-v5 (Euler) pressing its table under the upper-bound policy: in every corrected substep the realised
     acceleration ``(v+ - v) / h`` leaves the decision's band by no more than the uncorrected one would have

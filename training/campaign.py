@@ -73,7 +73,7 @@ from jaxlimits.training.campaign_rows import make_row
 class EvaluatorMetrics(Wrapper):
     """A ``JointLimitShield`` env's metrics under the evaluator's names: ``count/<k>`` and ``violation/<k>`` for
     ``VIOLATION_KEYS`` (the shield measures position, velocity and torque, and jerk where the robot has ``j_max``;
-    the others are 0), ``viable``
+    the others are 0; the impact where it has an impact point), ``viable``
     (1 - ``shield/nonviable``), ``torque_box_conflict`` (``shield/torque_conflict``), ``disturbance``
     (``shield/disturbance``: a contact pushed a shielded joint), ``distance`` (0 when the env has none)."""
 
@@ -87,8 +87,9 @@ class EvaluatorMetrics(Wrapper):
         m["viable"] = 1.0 - m["shield/nonviable"]
         m["torque_box_conflict"] = m["shield/torque_conflict"]
         m["disturbance"] = m["shield/disturbance"]
-        if "shield/impact_infeasible" in m:  # an impact point's cap (JointLimitShield(impact=))
+        if "shield/impact_infeasible" in m:  # an impact point's cap (JointLimitShield(impact=)) and its strikes
             m["impact_infeasible"] = m["shield/impact_infeasible"]
+            m["strike"], m["strike_ratio"] = m["shield/strike"], m["shield/strike_ratio"]
         m.setdefault("distance", zero)
         return state.replace(metrics=m)
 

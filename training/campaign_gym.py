@@ -30,9 +30,10 @@ How a row runs (one env, stepped from Python; each step is the wrapper's decisio
 - episodes: ``episode_length`` steps (the env's ``TimeLimit`` is set to it; a reset also on ``terminated``),
   until the row has taken exactly ``steps`` env-steps (the last episode cut short).
 
-Counted per env-step, from the wrapper's ``info``: a violation of limit ``k`` (position, velocity, torque) where
-``info["violation"][k] > 0``, its worst excess; non-viable steps, torque conflicts, NaN substitutions
-(``info["shield"]``). Acceleration, jerk and impact are not measured (``n/m``); the torque limit is measured, not
+Counted per env-step, from the wrapper's ``info``: a violation of limit ``k`` (position, velocity, torque; and the
+impact, a strike's impulsive joint torque over its bound, where the shield has an impact point: the wrapper's
+``violations``) where ``info["violation"][k] > 0``, its worst excess; non-viable steps, torque conflicts, NaN
+substitutions, strikes (``info["shield"]``). Acceleration and jerk are not measured (``n/m``); the torque limit is measured, not
 claimed (the wrapper's ``a_max`` is torque-derived from sampled states, the actuators may saturate), as for the
 Brax ``JointLimitShield`` targets. *Disturbed*: from the first step of an episode in which a constraint force
 other than the shielded joints' own limit rows acted on a shielded dof (a contact: Pusher's arm on its table) to
@@ -52,7 +53,7 @@ from __future__ import annotations
 import functools
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -124,6 +125,8 @@ class GymTarget:
 
         t0 = time.perf_counter()
         env = self.make(shield, max_episode_steps=episode_length)
+        # the limits the shield records (the strikes' impulsive torque too where it has an impact point)
+        target = replace(self, measured=tuple(env.get_wrapper_attr("violations")))
         low = np.asarray(env.action_space.low, np.float64)
         high = np.asarray(env.action_space.high, np.float64)
         policy, all_classes = jitted_policy(low.shape[0], episode_length)
@@ -138,7 +141,7 @@ class GymTarget:
                 count = dict.fromkeys(VIOLATION_KEYS, 0)
                 worst = dict.fromkeys(VIOLATION_KEYS, 0.0)
                 undisturbed = dict.fromkeys(VIOLATION_KEYS, 0)
-                nonviable = conflicts = nonfinite = disturbed_steps = impact_infeasible = 0
+                nonviable = conflicts = nonfinite = disturbed_steps = impact_infeasible = strikes = 0
                 done = episode = 0
                 t0 = time.perf_counter()
                 while done < steps:
@@ -152,7 +155,7 @@ class GymTarget:
                         s, v = info["shield"], info["violation"]
                         disturbed = disturbed or s["disturbance"]
                         disturbed_steps += disturbed
-                        for k in self.measured:
+                        for k in target.measured:
                             if v[k] > 0.0:
                                 count[k] += 1
                                 worst[k] = max(worst[k], float(v[k]))
@@ -161,6 +164,7 @@ class GymTarget:
                         conflicts += bool(s["torque_conflict"])
                         nonfinite += bool(s["nonfinite"])
                         impact_infeasible += bool(s.get("impact_infeasible", False))
+                        strikes += int(s.get("strike", 0))
                         if terminated or truncated:
                             break
                     episode += 1
@@ -168,12 +172,12 @@ class GymTarget:
                 counts = {"env_steps": done, "nonviable": nonviable, "conflicts": conflicts}
                 counts.update(disturbed_steps=disturbed_steps, impact_infeasible=impact_infeasible)
                 counts["nonfinite_actions"] = nonfinite
-                counts["strikes"] = 0
+                counts["strikes"] = strikes
                 for k in VIOLATION_KEYS:
                     counts[f"violations/{k}"] = count[k]
                     counts[f"max_violation/{k}"] = worst[k]
                     counts[f"undisturbed_violations/{k}"] = undisturbed[k]
-                row = make_row(self, shield, cls, counts, wall, compile_s)
+                row = make_row(target, shield, cls, counts, wall, compile_s)
                 rows.append(row)
         finally:
             env.close()

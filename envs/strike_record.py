@@ -1,0 +1,110 @@
+"""One strike measured from the physics, substep by substep: the impulsive joint torque of its contact impulse.
+
+Wang & Kheddar 2019 bound the impulsive joint torque of an impact, ``tau_imp = J^T F = J^T p / dt_impact`` (20),
+``p`` the contact impulse over the impact's duration ``dt_impact``. The simulator has no impact event, only contact
+forces per substep, so a *strike* is measured as a window:
+
+* it opens at the first substep in which the striking geometry is in contact (``in_contact``), storing the joint
+  position and velocity before that substep (``q_pre``, ``v_pre``) and the point's approach speed ``w`` [m/s];
+* it closes when the approach speed has dropped below ``stop_fraction`` of ``w`` (the compression phase: the rigid
+  model's impact), at most ``window_substeps`` substeps after it opened;
+* over it the contact's joint impulse ``impulse = sum(joint_force h)`` [N m s] is accumulated.
+
+The strike is counted once, in the control step its window closes (``finish``): ``ratio = max_j |impulse_j| /
+dt_impact / tau_imp_max_j`` (the measured impulsive torque over its bound; > 1 is a violation, its excess
+``ratio - 1``). The record re-arms once a strike's window has closed and the geometry was off contact for a whole
+control step (``off``), so that every strike is measured, re-strikes after a bounce or a pull-back too, and it starts
+afresh at every episode's first step. ``struck`` (kept across re-arms) says whether the episode struck at all.
+
+The record is a flat dict of float32 arrays (a pytree: it lives in a Brax ``State.info``). Every function takes the
+array module ``xp`` (``jax.numpy``, the default, or ``numpy``). Used by ``WallStrike`` (which adds its own fields), by
+``JointLimitShield(impact=ImpactPoint(...))`` and by ``JointLimitShieldWrapper(impact=...)`` (numpy, C MuJoCo), whose
+``info["violation"]["impact"]`` it gives.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+
+def fresh(n: int, struck=None, xp=jnp) -> dict:
+    """An armed record for ``n`` joints (no strike measured yet); ``struck``: whether the episode struck before."""
+    f32 = np.float32
+    zero = xp.zeros((), f32)
+    zn = xp.zeros((n,), f32)
+    return {
+        "struck": zero if struck is None else xp.asarray(struck, f32),
+        "hit": zero,  # 1 once the window opened
+        "off": xp.ones((), f32),  # 1: the last control step had no substep in contact
+        "k": zero,  # substeps in the window so far
+        "open": xp.ones((), f32),  # 1 until the window has closed
+        "w": zero,  # approach speed at the window's first substep [m/s]
+        "q_pre": zn,
+        "v_pre": zn,
+        "impulse": zn,  # contact joint impulse over the window [N m s]
+    }
+
+
+def start_step(kept: dict, fresh_record: dict, first_step, xp=jnp) -> dict:
+    """The record a control step starts from: ``fresh_record`` at an episode's first step (``first_step``, a bool
+    ``()``) or once ``kept``'s strike has closed and a whole step passed off contact, else ``kept``.
+    ``fresh_record`` carries the fields a caller adds, and ``struck`` (reset at an episode's first step, else kept)."""
+    new = first_step | ((kept["hit"] > 0) & (kept["open"] == 0) & (kept["off"] > 0))
+    return {k: xp.where(new, fresh_record[k], kept[k]) for k in fresh_record}
+
+
+def advance(
+    rec: dict, in_contact, w_pre, w_post, q, v, joint_force, h, window_substeps: int, stop_fraction: float, xp=jnp
+):
+    """``(rec, in_window)``: the record after one substep.
+
+    in_contact: ``()`` bool, the striking geometry touches in this substep. w_pre, w_post: ``()`` the point's
+    approach speed [m/s] before and after the substep. q, v: ``(n,)`` joint position and velocity before it.
+    joint_force: ``(n,)`` the contact's joint force in it [N m]. h: the substep [s]. ``in_window``: ``()`` bool,
+    this substep was inside the window (callers accumulate their own fields over it)."""
+    f32 = np.float32
+    first = (rec["hit"] == 0) & in_contact
+    hit = xp.where(in_contact, 1.0, rec["hit"]).astype(f32)
+    w_hit = xp.where(first, w_pre, rec["w"]).astype(f32)
+    stopped = (hit > 0) & (w_post <= stop_fraction * w_hit)
+    in_window = (hit > 0) & (rec["open"] > 0)
+    closes = in_window & (stopped | (rec["k"] + 1 >= window_substeps))
+    new = dict(rec)
+    new.update(
+        struck=xp.maximum(rec["struck"], hit),
+        hit=hit,
+        k=(rec["k"] + in_window).astype(f32),
+        open=xp.where(closes, 0.0, rec["open"]).astype(f32),
+        w=w_hit,
+        q_pre=xp.where(first, q, rec["q_pre"]).astype(f32),
+        v_pre=xp.where(first, v, rec["v_pre"]).astype(f32),
+        impulse=(rec["impulse"] + xp.where(in_window, joint_force * h, 0.0)).astype(f32),
+    )
+    return new, in_window
+
+
+def impulsive_ratio(impulse, dt_impact: float, tau_imp_max, xp=jnp):
+    """``()`` ``max_j |impulse_j| / dt_impact / tau_imp_max_j``: the measured impulsive torque over its bound (20)."""
+    return xp.max(xp.abs(impulse) / np.float32(dt_impact) / xp.asarray(tau_imp_max, np.float32))
+
+
+def finish(start: dict, end: dict, contact_in_step, dt_impact: float, tau_imp_max, xp=jnp):
+    """``(record, strike)`` at a control step's end: ``record`` with ``off`` set (``contact_in_step``: any substep of
+    the step in contact) and ``strike`` ``{"strike": 1.0 in the step the window closed, "ratio": its impulsive
+    ratio then (else 0), "excess": max(ratio - 1, 0) then, "speed": its approach speed w then [m/s]}`` (float32
+    ``()`` each)."""
+    f32 = np.float32
+    closed = (start["open"] > 0) & (end["open"] == 0)
+    ratio = xp.where(closed, impulsive_ratio(end["impulse"], dt_impact, tau_imp_max, xp), 0.0).astype(f32)
+    record = dict(end, off=(1.0 - xp.asarray(contact_in_step, f32)))
+    strike = {
+        "strike": xp.asarray(closed, f32),
+        "ratio": ratio,
+        "excess": xp.maximum(ratio - f32(1.0), f32(0.0)),
+        "speed": xp.where(closed, end["w"], 0.0).astype(f32),
+    }
+    return record, strike
+
+
+__all__ = ["advance", "finish", "fresh", "impulsive_ratio", "start_step"]

@@ -1,0 +1,187 @@
+"""The strike measurement (``envs/strike_record.py``): its window on hand-made substeps, and on the one shield
+(``JointLimitShield(impact=ImpactPoint(...))``) a block dropped onto a floor, whose contact impulse the rigid model
+gives (``m w``), with the cap enforced (every strike under its bound) and only measured (strikes over it)."""
+
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxlimits.envs import strike_record
+
+N = 2
+H = 0.002
+
+
+def _run(substeps, window_substeps=10, stop_fraction=0.1, record=None, first_step=False):
+    """One control step over ``substeps``: a list of ``(in_contact, w_pre, w_post, force)``."""
+    kept = strike_record.fresh(N) if record is None else record
+    fresh = strike_record.fresh(N, jnp.where(first_step, 0.0, kept["struck"]))
+    start = strike_record.start_step(kept, fresh, jnp.asarray(first_step))
+    rec = start
+    for touch, w_pre, w_post, force in substeps:
+        rec, _ = strike_record.advance(
+            rec,
+            jnp.asarray(touch),
+            jnp.float32(w_pre),
+            jnp.float32(w_post),
+            jnp.full((N,), 0.5, jnp.float32),
+            jnp.full((N,), -w_pre, jnp.float32),
+            jnp.asarray(force, jnp.float32),
+            H,
+            window_substeps,
+            stop_fraction,
+        )
+    touched = any(s[0] for s in substeps)
+    return strike_record.finish(start, rec, touched, dt_impact=0.005, tau_imp_max=np.array([10.0, 20.0]))
+
+
+def test_a_strike_is_its_impulse_over_the_compression_and_is_counted_once():
+    free = (False, 1.0, 1.0, [0.0, 0.0])
+    # contact in the third substep at 1 m/s; the speed falls to 0.5 then to 0.05 (< 10 %): the window closes there
+    rec, s = _run([free, free, (True, 1.0, 0.5, [30.0, -60.0]), (True, 0.5, 0.05, [40.0, 10.0]), free])
+    np.testing.assert_allclose(rec["impulse"], [70.0 * H, -50.0 * H], rtol=1e-6)
+    assert float(rec["w"]) == 1.0 and float(rec["k"]) == 2.0 and float(rec["open"]) == 0.0
+    assert float(s["strike"]) == 1.0
+    np.testing.assert_allclose(float(s["ratio"]), max(70 * H / 0.005 / 10, 50 * H / 0.005 / 20), rtol=1e-6)
+    np.testing.assert_allclose(float(s["excess"]), float(s["ratio"]) - 1.0, rtol=1e-6)
+    assert float(rec["off"]) == 0.0  # this step touched: no re-arming in the next
+    # the next step presses on: not a new strike, nothing accumulated
+    rec2, s2 = _run([(True, 0.0, 0.0, [5.0, 5.0])] * 5, record=rec)
+    assert float(s2["strike"]) == 0.0 and float(s2["ratio"]) == 0.0
+    np.testing.assert_array_equal(rec2["impulse"], rec["impulse"])
+    # a whole step off contact, then a re-strike: measured afresh (the impulse starts from 0)
+    rec3, s3 = _run([free] * 5, record=rec2)
+    assert float(s3["strike"]) == 0.0 and float(rec3["off"]) == 1.0
+    rec4, s4 = _run([(True, 0.2, 0.0, [1.0, 1.0])], record=rec3)
+    assert float(s4["strike"]) == 1.0 and float(rec4["struck"]) == 1.0
+    np.testing.assert_allclose(rec4["impulse"], [H, H], rtol=1e-6)
+    np.testing.assert_allclose(float(s4["ratio"]), H / 0.005 / 10, rtol=1e-6)
+
+
+def test_the_window_is_capped_and_an_episodes_first_step_starts_afresh():
+    # the speed never drops: the window closes after window_substeps substeps, in the second step
+    rec, s = _run([(True, 1.0, 1.0, [10.0, 0.0])] * 5, window_substeps=7)
+    assert float(s["strike"]) == 0.0 and float(rec["open"]) == 1.0
+    rec, s = _run([(True, 1.0, 1.0, [10.0, 0.0])] * 5, window_substeps=7, record=rec)
+    assert float(s["strike"]) == 1.0 and float(rec["k"]) == 7.0
+    np.testing.assert_allclose(rec["impulse"][0], 7 * 10.0 * H, rtol=1e-6)
+    # an episode's first step: the record restarts, struck included, whatever it held
+    rec, s = _run([(False, 0.0, 0.0, [0.0, 0.0])], record=rec, first_step=True)
+    assert float(rec["struck"]) == 0.0 and float(rec["hit"]) == 0.0 and float(s["strike"]) == 0.0
+
+
+# ---- on the one shield: a 1 kg block on a vertical slide, dropped onto a floor --------------------------------------
+BLOCK = """<mujoco>
+  <option timestep="0.002" integrator="Euler"/>
+  <custom>
+    <numeric name="jaxlimits_v_max" data="2.0"/>
+    <numeric name="jaxlimits_a_max" data="15.0"/>
+  </custom>
+  <worldbody>
+    <geom name="floor" type="plane" pos="0 0 0.12" size="1 1 0.1" solref="0.004 1"/>
+    <body name="block" pos="0 0 0.5">
+      <joint name="z" type="slide" axis="0 0 1" range="-0.4 0.4"/>
+      <geom name="ball" type="sphere" size="0.05" mass="1" solref="0.004 1" condim="1"/>
+      <site name="ee"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="z" gear="1" ctrlrange="-30 30"/></actuator>
+</mujoco>
+"""
+
+
+def _point(enforce: bool):
+    from jaxlimits.envs.impact_point import ImpactPoint
+
+    # the cap's bound is the motor's 30 N (peak_torque); restitution (0, 0.2), the default; surface: the cap applies
+    # near the floor only (its plane at z = 0.12, the ball's radius 0.05 around the site)
+    return ImpactPoint("ee", normal=(0.0, 0.0, -1.0), enforce=enforce, surface=(0, 0, 0.12), clearance=0.05)
+
+
+def _block_mjx(path: pathlib.Path, enforce: bool, steps: int, batch: int):
+    """``JointLimitShield`` over ``Reach(action="acceleration")``: every block at full acceleration toward the floor.
+    Returns ``(steps, batch)`` arrays: strike, its ratio, the impact excess, its speed, position/velocity excess."""
+    from jaxlimits.envs import JointLimitShield
+    from jaxlimits.envs.reach import Reach
+
+    env = JointLimitShield(Reach(path, action="acceleration"), impact=_point(enforce))
+    assert "impact" in env.violations
+
+    @jax.jit
+    def rollout(key):
+        state = jax.vmap(env.reset)(jax.random.split(key, batch))
+
+        def body(s, _):
+            s = jax.vmap(env.step)(s, -jnp.ones((batch, 1)))
+            m, v = s.metrics, s.info["violation"]
+            return s, (m["shield/strike"], m["shield/strike_ratio"], v["impact"], m["shield/strike_speed"]) + (
+                v["position"],
+                v["velocity"],
+            )
+
+        return jax.lax.scan(body, state, None, length=steps)[1]
+
+    return [np.asarray(x) for x in rollout(jax.random.PRNGKey(0))]
+
+
+def _block_c(path: pathlib.Path, enforce: bool, steps: int, batch: int):
+    """The same through ``JointLimitShieldWrapper`` (C MuJoCo) over a Gymnasium ``MujocoEnv`` of the block, its ctrl
+    the motor's full force toward the floor, one episode per block (starts uniform as ``Reach``'s)."""
+    from jaxlimits.envs.gym import JointLimitShieldWrapper
+    from small_mujoco_env import SmallMujocoEnv
+
+    block = SmallMujocoEnv(path, reset_qpos=lambda rng: rng.uniform(-0.32, 0.32, 1))
+    env = JointLimitShieldWrapper(block, impact=_point(enforce))
+    assert "impact" in env.violations
+    out = np.zeros((6, steps, batch), np.float32)
+    for b in range(batch):
+        env.reset(seed=b)
+        for t in range(steps):
+            info = env.step(np.array([-30.0]))[-1]
+            sh, v = info["shield"], info["violation"]
+            out[:, t, b] = (
+                sh["strike"],
+                sh["strike_ratio"],
+                v["impact"],
+                sh["strike_speed"],
+                v["position"],
+                v["velocity"],
+            )
+    assert env.tally["strikes"] == out[0].sum() and env.tally["impact_violations"] == np.sum(out[2] > 0)
+    return list(out)
+
+
+@pytest.mark.parametrize("enforce", [False, True])
+@pytest.mark.parametrize("engine", ["mjx", "c"])
+def test_a_block_dropped_on_a_floor_strikes_as_the_rigid_model_says(tmp_path, engine, enforce):
+    """The block strikes its floor; the strike measured (its contact impulse over the window) is the rigid model's
+    ``m (1 + c) w``; with the cap enforced every strike stays within its bound (ratio <= 1, counted as none, no
+    rebound), measured-only the block arrives fast and every first strike is counted over it. Both shields: Brax on
+    MJX and Gymnasium on C MuJoCo."""
+    path = tmp_path / "block.xml"
+    path.write_text(BLOCK)
+    run = _block_mjx if engine == "mjx" else _block_c
+    strike, ratio, excess, w, pos, vel = run(path, enforce, steps=100, batch=16)
+    bound = 30.0 * 0.005  # tau_imp_max dt_impact [N s]: the largest impulse the cap allows
+    struck = strike > 0
+    assert np.all(struck.sum(axis=0) >= 1), "every block strikes its floor"
+    first = np.argmax(struck, axis=0), np.arange(struck.shape[1])  # each block's first strike
+    impulse, speed = ratio[first] * bound, w[first]
+    # the rigid model of a 1 kg block: p = m (1 + c) w, c in [0, 0.2] (MuJoCo's soft contact, one 2 ms substep,
+    # rebounds a little); the window ends once the speed is under 10 % of w, so at least 0.9 m w. Measured-only, the
+    # shield's contact correction keeps the block's acceleration in its bounds during the strike and pushes on (at
+    # most the motor's 30 N over the 0.02 s window: measured up to 0.4 N s at 1.45 m/s)
+    assert np.all(impulse >= 0.9 * speed), impulse / speed
+    assert np.all(impulse <= 1.2 * speed + (0.0 if enforce else 30.0 * 0.02)), impulse / speed
+    np.testing.assert_allclose(excess[struck], np.maximum(ratio[struck] - 1.0, 0.0), rtol=1e-6, atol=1e-6)
+    assert np.all(excess[~struck] == 0)
+    assert np.max(pos) <= 0 and np.max(vel) <= 0
+    if enforce:  # the cap holds the block to bound / (1.2 m): every strike within its bound, counted as none
+        assert np.all(struck.sum(axis=0) == 1), "a strike at the cap does not bounce off"
+        assert np.max(ratio) <= 1.0 and np.all(excess == 0)
+        assert np.max(speed) <= bound / 1.2 * 1.0001
+    else:  # only measured: the block arrives fast, the strikes exceed the bound and are counted
+        assert np.min(speed) > 0.3 and np.all(excess[first] > 1.0)
