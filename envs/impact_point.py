@@ -60,7 +60,7 @@ class ImpactPoint(NamedTuple):
     clearance: [m] how far the striking geometry reaches past the point toward the surface (e.g. a capsule's radius
       and half-length around a body's origin), taken off the distance.
     window, stop_fraction: the strike measurement (``envs/strike_record.py``): a strike's window opens at the first
-      physics substep in which a geom of the point's body (or of a body it carries) touches, and closes once the
+      physics substep in which a geom of the point's body (or of a body it carries) is in a contact, and closes once the
       point's approach speed has fallen below ``stop_fraction`` of its value then, at most ``window`` [s] later.
     """
 
@@ -310,23 +310,26 @@ class ImpactModel(NamedTuple):
         return M[dofs, :][:, dofs], J, J_rate, np.array(point)
 
     def c_striking(self, data: mujoco.MjData) -> bool:
-        """``striking`` from C MuJoCo: a geom of the point's subtree penetrates in ``data``'s contacts."""
+        """``striking`` from C MuJoCo: a geom of the point's subtree is in one of ``data``'s contacts (within its
+        ``includemargin``)."""
         c = data.contact
         mask = self.strike_geoms
-        return bool(np.any((c.dist < 0) & (mask[c.geom1] | mask[c.geom2]))) if data.ncon else False
+        return bool(np.any((c.dist < c.includemargin) & (mask[c.geom1] | mask[c.geom2]))) if data.ncon else False
 
     def key(self) -> tuple:
         """A hashable digest of every field (a compiled decision's cache key; the contact model's own ``key``)."""
         return tuple(_digest(x) for x in self)
 
     def striking(self, d) -> jax.Array:
-        """``()`` bool: a geom of the point's subtree is in contact (penetrating) in MJX data ``d`` (after collision)."""
+        """``()`` bool: a geom of the point's subtree is in contact in MJX data ``d`` (after collision): a contact
+        within its ``includemargin`` (MuJoCo's rule for a contact's constraint rows: ``dist < margin - gap``; Brax's
+        ``pusher`` has a 2 mm margin, so its wrist is pushed before it penetrates)."""
         impl = d._impl if hasattr(d, "_impl") else d
         if impl.ncon == 0:
             return jnp.zeros((), bool)
         c = impl.contact
         mask = jnp.asarray(self.strike_geoms)
-        return jnp.any((c.dist < 0) & (mask[c.geom1] | mask[c.geom2]))
+        return jnp.any((c.dist < c.includemargin) & (mask[c.geom1] | mask[c.geom2]))
 
     def approach_speed(self, J, v) -> jax.Array:
         """``()`` the point's speed along ``normal`` [m/s] for joint velocity ``v`` (positive: approaching)."""

@@ -2,12 +2,14 @@
 trainers, tallies and evaluator read (``jaxlimits.training.tally``, ``jaxlimits.training.evaluate``).
 
 Per step, for every ``VIOLATION_KEYS`` kind: ``count/<kind>`` (1.0 when the step's excess is positive) and
-``violation/<kind>`` (the excess, from ``state.info["violation"]``; ``acceleration`` and ``impact``, which
-``JointLimitShield`` does not measure, are 0, and ``jerk`` where the robot has no ``j_max``); and ``intervention``, ``viable``,
-``nonfinite_action``, ``torque_box_conflict`` from the shield's ``shield/intervention``,
-``shield/nonviable``, ``shield/nonfinite``, ``shield/torque_conflict``; with an impact point (``JointLimitShield(
-impact=)``) ``impact_cap`` and ``impact_infeasible`` (``SafetyWrapper``'s names) from ``shield/impact_cap`` and
-``shield/impact_infeasible``. Nothing else changes.
+``violation/<kind>`` (the excess, from ``state.info["violation"]``; ``acceleration``, which ``JointLimitShield`` does
+not measure, is 0, so are ``jerk`` where the robot has no ``j_max`` and ``impact`` without an impact point); and
+``intervention``, ``viable``,
+``nonfinite_action``, ``torque_box_conflict``, ``disturbance`` from the shield's ``shield/intervention``,
+``shield/nonviable``, ``shield/nonfinite``, ``shield/torque_conflict``, ``shield/disturbance``; with an impact point (``JointLimitShield(
+impact=)``) ``impact_cap``, ``impact_infeasible``, ``strike`` and ``strike_ratio`` (``SafetyWrapper``'s and
+``WallStrike``'s names) from ``shield/impact_cap``, ``shield/impact_infeasible``, ``shield/strike`` and
+``shield/strike_ratio``. Nothing else changes.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import jax.numpy as jnp
 from jaxlimits.envs.arm import VIOLATION_KEYS, State, Wrapper
 
 _RENAMED = {
+    "disturbance": "shield/disturbance",  # a contact pushed a shielded joint (the evaluator's disturbed steps)
     "intervention": "shield/intervention",
     "nonfinite_action": "shield/nonfinite",
     "torque_box_conflict": "shield/torque_conflict",
@@ -34,7 +37,7 @@ def _with_metrics(state: State) -> State:
     for name, source in _RENAMED.items():
         metrics[name] = jnp.asarray(state.metrics[source], jnp.float32)
     metrics["viable"] = 1.0 - jnp.asarray(state.metrics["shield/nonviable"], jnp.float32)
-    for name in ("impact_cap", "impact_infeasible"):
+    for name in ("impact_cap", "impact_infeasible", "strike", "strike_ratio"):
         if f"shield/{name}" in state.metrics:
             metrics[name] = jnp.asarray(state.metrics[f"shield/{name}"], jnp.float32)
     return state.replace(metrics=metrics)

@@ -81,7 +81,7 @@ BLOCK = """<mujoco>
     <numeric name="jaxlimits_a_max" data="15.0"/>
   </custom>
   <worldbody>
-    <geom name="floor" type="plane" pos="0 0 0.12" size="1 1 0.1" solref="0.004 1"/>
+    <geom name="floor" type="plane" pos="0 0 0.12" size="1 1 0.1" solref="0.004 1" margin="0.002"/>
     <body name="block" pos="0 0 0.5">
       <joint name="z" type="slide" axis="0 0 1" range="-0.4 0.4"/>
       <geom name="ball" type="sphere" size="0.05" mass="1" solref="0.004 1" condim="1"/>

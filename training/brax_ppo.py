@@ -75,7 +75,7 @@ def make_env(
     from jaxlimits.envs.actions import with_action_mode
 
     if name in ROBOT_ENVS:
-        return _robot_env(name, shield, action_mode or ROBOT_ACTION_MODES[name][0], **kwargs)
+        return _robot_env(name, shield, action_mode or ROBOT_ACTION_MODES[name][0], impact=impact, **kwargs)
     action_mode = action_mode or "acceleration"
     shielded = SafetyWrapper(
         make_base_env(name, **kwargs), method=shield, gradient=shield_gradient, impact=True if impact else None
@@ -83,21 +83,30 @@ def make_env(
     return with_action_mode(shielded, action_mode)
 
 
-def _robot_env(name: str, shield: str, action_mode: str, **kwargs):
+def _robot_env(name: str, shield: str, action_mode: str, impact: bool = False, **kwargs):
     """``ViolationMetrics(JointLimitShield(Reach(action=action_mode, **kwargs), method=shield))`` for a
-    ``ROBOT_ENVS`` name: the any-robot shield around the any-robot reach, its record under the metric
-    names the trainers and the evaluator read (``jaxlimits.envs.violation_metrics``). ``"velocity"`` (the planar
-    arm): ``VelocityActions`` over the shield of ``Reach(action="acceleration")``, as over ``SafetyWrapper``."""
+    ``ROBOT_ENVS`` name: the any-robot shield around the any-robot task (``Reach``; ``planar_robot_wall``: ``Strike``,
+    with ``impact`` its impact cap, ``strike_point``), its record under the metric names the trainers and the
+    evaluator read (``jaxlimits.envs.violation_metrics``). ``"velocity"`` (the planar arm): ``VelocityActions`` over
+    the shield of the task's ``action="acceleration"``, as over ``SafetyWrapper``."""
     from jaxlimits.envs import JointLimitShield
     from jaxlimits.envs.actions import with_action_mode
     from jaxlimits.envs.reach import make_planar_robot_reach, make_servo_panda_front_reach
+    from jaxlimits.envs.strike import make_planar_robot_wall, strike_point
     from jaxlimits.envs.violation_metrics import ViolationMetrics
 
-    makers = {"servo_panda_front_reach": make_servo_panda_front_reach, "planar_robot_reach": make_planar_robot_reach}
+    makers = {
+        "servo_panda_front_reach": make_servo_panda_front_reach,
+        "planar_robot_reach": make_planar_robot_reach,
+        "planar_robot_wall": make_planar_robot_wall,
+    }
+    if name in CONTACT_ENVS:
+        kwargs.pop("precision_reward", None)  # a reach option (the config refuses it for contact envs)
     reach_action = "acceleration" if action_mode == "velocity" else action_mode
+    task = makers[name](action=reach_action, **kwargs)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # the torque-derived a_max's quantile notice
-        shielded = JointLimitShield(makers[name](action=reach_action, **kwargs), method=shield)
+        shielded = JointLimitShield(task, method=shield, impact=strike_point(task) if impact else None)
     return ViolationMetrics(with_action_mode(shielded, action_mode) if action_mode == "velocity" else shielded)
 
 

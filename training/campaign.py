@@ -19,7 +19,9 @@ do reach the limits (a campaign whose unshielded rows were clean would prove not
 Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
 cap, the same cap anticipating braking, viability, none); the planar arm again as a robot under the one shield
-(``planar arm (one shield)``: ``Reach(action="acceleration")`` in ``JointLimitShield``); the shipped position-servo Panda and UR5e and Brax's ``reacher``, ``pusher``, ``ant`` and ``hopper`` under
+(``planar arm (one shield)``: ``Reach(action="acceleration")`` in ``JointLimitShield``) and its wall strike (``planar wall
+(one shield)``: ``envs/strike.py``'s ``Strike`` with the impact cap ``strike_point``, its strikes measured by the shield);
+the shipped position-servo Panda and UR5e and Brax's ``reacher``, ``pusher``, ``ant`` and ``hopper`` under
 ``JointLimitShield`` (viability, jerk where the MJCF has ``j_max``, none; for ``pusher`` also viability + the impact
 cap on its wrist, ``JointLimitShield(impact=ImpactPoint(...))``), whose metrics ``EvaluatorMetrics``
 renames for the evaluator and whose NaN actions a ``NonFiniteActionGuard`` keeps out of the env; and Gymnasium's
@@ -148,14 +150,17 @@ def _arm(env_name: str):
 
 
 def _third_party(make_env, inside: bool = False, impact=None, **kwargs):
-    """``impact``: the ``ImpactPoint`` the target's ``+impact`` shields cap (``JointLimitShield(impact=)``)."""
+    """``impact``: the ``ImpactPoint`` the target's ``+impact`` shields cap (``JointLimitShield(impact=)``), or a
+    function of the env giving it (``strike.strike_point``)."""
 
     def make(shield):
         from jaxlimits.envs import JointLimitShield
         from jaxlimits.envs.nonfinite_guard import NonFiniteActionGuard
 
         method, *extras = shield.split("+")
-        env = JointLimitShield(make_env(), method=method, impact=impact if "impact" in extras else None, **kwargs)
+        task = make_env()
+        point = (impact(task) if callable(impact) else impact) if "impact" in extras else None
+        env = JointLimitShield(task, method=method, impact=point, **kwargs)
         return EvaluatorMetrics(NonFiniteActionGuard(InsideReset(env) if inside else env))
 
     return make
@@ -191,6 +196,19 @@ def _ur5e():
     return make_ur5e_reach()
 
 
+def _planar_robot_wall():
+    """The planar wall strike as a task over the robot (``envs/strike.py``), under the one shield."""
+    from jaxlimits.envs.strike import make_planar_robot_wall
+
+    return make_planar_robot_wall()
+
+
+def _strike_point(task):
+    from jaxlimits.envs.strike import strike_point
+
+    return strike_point(task)
+
+
 def _planar_robot():
     """The project's planar arm as a robot under the one shield (``Reach(action="acceleration")``: the campaign's
     actions ``[-1, 1]`` are joint accelerations ``action * a_max``, as for the ``planar arm`` target)."""
@@ -214,6 +232,12 @@ TARGETS = {
     "UR5e": Target("UR5e", _third_party(_ur5e), ("viability", "none"), **_SHIELD_MEASURES),
     "planar arm (one shield)": Target(
         "planar arm (one shield)", _third_party(_planar_robot), ("viability", "jerk", "none"), **_SHIELD_MEASURES
+    ),
+    "planar wall (one shield)": Target(
+        "planar wall (one shield)",
+        _third_party(_planar_robot_wall, impact=_strike_point),
+        ("viability+impact", "viability", "none"),
+        **_SHIELD_MEASURES,
     ),
     "brax reacher": Target(
         "brax reacher", _third_party(_brax("reacher"), v_max=4.0), ("viability", "none"), **_SHIELD_MEASURES

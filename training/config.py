@@ -18,14 +18,17 @@ ENVS = (
     "planar_wall",
     "servo_panda_front_reach",
     "planar_robot_reach",
+    "planar_robot_wall",
 )
-CONTACT_ENVS = ("planar_wall",)  # envs with contacts: the impact-aware speed cap applies (``impact``)
+# envs with contacts: the impact-aware speed cap applies (``impact``)
+CONTACT_ENVS = ("planar_wall", "planar_robot_wall")
 # envs over any robot (``jaxlimits.envs.reach.Reach`` inside ``JointLimitShield``, the one shield): the shield any of
 # ``JointLimitShield``'s methods, the actions per env, the first the default: the servo Panda's actuators' own
 # commands; the planar arm's joint accelerations (``Reach(action="acceleration")``) or velocities tracked through them
 ROBOT_ACTION_MODES = {
     "servo_panda_front_reach": ("servo_offset", "ctrl"),
     "planar_robot_reach": ("acceleration", "velocity"),
+    "planar_robot_wall": ("acceleration", "velocity"),  # WallStrike's task over the planar arm (envs/strike.py)
 }
 ROBOT_ENVS = tuple(ROBOT_ACTION_MODES)
 REACH_ENVS = tuple(e for e in ENVS if e not in CONTACT_ENVS)  # the reach tasks (success = final distance)

@@ -66,6 +66,7 @@ CAMERAS = {
 }
 CAMERAS["panda_front_reach"] = CAMERAS["servo_panda_front_reach"] = CAMERAS["panda_reach"]  # the same robot
 CAMERAS["planar_robot_reach"] = CAMERAS["planar_reach"]  # the same arm, under the one shield
+CAMERAS["planar_robot_wall"] = CAMERAS["planar_wall"]
 WALL_RGBA = np.array([0.6, 0.55, 0.5, 1.0], np.float32)
 WALL_HALF_THICKNESS = 0.02  # [m], of the slab the wall is drawn as
 STRIP_ROW = 7  # [px] per joint in the limits strip
