@@ -29,7 +29,7 @@ import numpy as np
 from jaxlimits.envs.arm import _mjx_tracing
 from jaxlimits.envs.impact_point import ImpactPoint
 from jaxlimits.envs.reach import ASSETS, Reach, State
-from jaxlimits.envs.wall_strike import PLANAR_HOME, PLANAR_WALL, _quat_z_to, wall_xml
+from jaxlimits.envs.wall_strike import PLANAR_HOME, PLANAR_WALL, _quat_z_to, check_wall_task, wall_xml
 
 
 class Strike(Reach):
@@ -65,19 +65,10 @@ class Strike(Reach):
         scene = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction), str(xml_path))
         super().__init__(scene, **{"action": "acceleration", **kwargs})
         mjm = self.mj_model
-        self.home = np.asarray(home, np.float64)
-        if self.home.shape != (mjm.nq,) or not np.all(np.isfinite(self.home)):
-            raise ValueError(f"Strike: home must be {mjm.nq} finite joint positions, got {home!r}")
-        nrm = np.asarray(normal, np.float64)
-        if nrm.shape != (3,) or not np.all(np.isfinite(nrm)) or np.linalg.norm(nrm) < 1e-9:
-            raise ValueError(f"Strike: normal must be a non-zero 3-vector, got {normal!r}")
-        self.normal = nrm / np.linalg.norm(nrm)
-        if not 0.0 < gap_low <= gap_high:
-            raise ValueError(f"Strike: need 0 < gap_low <= gap_high, got {gap_low}, {gap_high}")
+        self.home, self.normal, self.gap = check_wall_task("Strike", mjm.nq, home, normal, gap_low, gap_high)
         for field, value in (("q_noise", q_noise), ("contact_bonus", contact_bonus), ("impulse_limit", impulse_limit)):
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"Strike: {field} must be a finite number >= 0, got {value!r}")
-        self.gap = (float(gap_low), float(gap_high))
         self.q_noise = float(q_noise)
         self.ball_radius = float(ball_radius)
         self.friction = float(friction)

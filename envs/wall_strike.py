@@ -137,6 +137,20 @@ def _scene_dir() -> tempfile.TemporaryDirectory:
     return tempfile.TemporaryDirectory(prefix="jaxlimits_wall_")
 
 
+def check_wall_task(owner: str, n: int, home, normal, gap_low, gap_high) -> tuple:
+    """``(home (n,), unit normal (3,), (gap_low, gap_high))`` of a wall-strike task, checked: ``ValueError`` naming
+    ``owner`` and the field otherwise (``WallStrike``, ``strike.Strike``)."""
+    home_arr = np.asarray(home, np.float64)
+    if home_arr.shape != (n,) or not np.all(np.isfinite(home_arr)):
+        raise ValueError(f"{owner}: home must be {n} finite joint positions, got {home!r}")
+    nrm = np.asarray(normal, np.float64)
+    if nrm.shape != (3,) or not np.all(np.isfinite(nrm)) or np.linalg.norm(nrm) < 1e-9:
+        raise ValueError(f"{owner}: normal must be a non-zero 3-vector, got {normal!r}")
+    if not 0.0 < gap_low <= gap_high:
+        raise ValueError(f"{owner}: need 0 < gap_low <= gap_high, got {gap_low}, {gap_high}")
+    return home_arr, nrm / np.linalg.norm(nrm), (float(gap_low), float(gap_high))
+
+
 def _quat_z_to(direction) -> np.ndarray:
     """A unit quaternion (w, x, y, z) rotating the z axis onto ``direction`` (a plane's normal is its z)."""
     z = np.array([0.0, 0.0, 1.0])
@@ -193,16 +207,7 @@ class WallStrike(ArmReach):
     ):
         xml = wall_xml(float(ball_radius), tuple(float(x) for x in solref), float(friction), str(arm))
         super().__init__(xml, "ee", (0.2, -0.5, 0.1), (0.9, 0.5, 0.9), target="box", **kwargs)
-        self.home = np.asarray(home, np.float64)
-        if self.home.shape != (self.n,) or not np.all(np.isfinite(self.home)):
-            raise ValueError(f"WallStrike: home must be {self.n} finite joint positions, got {home!r}")
-        nrm = np.asarray(normal, np.float64)
-        if nrm.shape != (3,) or not np.all(np.isfinite(nrm)) or np.linalg.norm(nrm) < 1e-9:
-            raise ValueError(f"WallStrike: normal must be a non-zero 3-vector, got {normal!r}")
-        self.normal = nrm / np.linalg.norm(nrm)
-        if not 0.0 < gap_low <= gap_high:
-            raise ValueError(f"WallStrike: need 0 < gap_low <= gap_high, got {gap_low}, {gap_high}")
-        self.gap = (float(gap_low), float(gap_high))
+        self.home, self.normal, self.gap = check_wall_task("WallStrike", self.n, home, normal, gap_low, gap_high)
         self.q_noise = float(q_noise)
         _impact.check_restitution(*c_range)  # validates eagerly
         if not dt_impact > 0 or not window > 0 or not tau_imp_scale > 0:
@@ -601,6 +606,7 @@ __all__ = [
     "PLANAR_WALL",
     "ImpactSpec",
     "WallStrike",
+    "check_wall_task",
     "make_planar_wall_strike",
     "make_wall_strike",
     "rigid_prediction",
