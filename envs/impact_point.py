@@ -142,13 +142,20 @@ class ImpactPoint(NamedTuple):
 
 
 def striking_geoms(mj_model: mujoco.MjModel, body: int) -> np.ndarray:
-    """``(ngeom,)`` bool: the geoms of ``body`` and of every body it carries (its subtree), those whose contacts are
-    the point's strikes."""
-    in_subtree = np.zeros(mj_model.nbody, bool)
-    in_subtree[body] = True
-    for b in range(body + 1, mj_model.nbody):  # a body's parent has a smaller index
-        in_subtree[b] = in_subtree[mj_model.body_parentid[b]]
-    return in_subtree[mj_model.geom_bodyid]
+    """``(ngeom,)`` bool: the geoms whose contacts are the point's strikes: those of ``body`` and of every body it
+    carries (its subtree); where none of them can collide (``contype`` and ``conaffinity`` 0: Gymnasium ``Pusher``'s
+    fingertip body ``tips_arm``), those of the nearest body above it whose subtree has one (the pusher's wrist), so
+    that a point's strikes are never silently unmeasured."""
+    collides = (mj_model.geom_contype != 0) | (mj_model.geom_conaffinity != 0)
+    while True:
+        in_subtree = np.zeros(mj_model.nbody, bool)
+        in_subtree[body] = True
+        for b in range(body + 1, mj_model.nbody):  # a body's parent has a smaller index
+            in_subtree[b] = in_subtree[mj_model.body_parentid[b]]
+        geoms = in_subtree[mj_model.geom_bodyid]
+        if np.any(geoms & collides) or body == 0:
+            return geoms
+        body = int(mj_model.body_parentid[body])
 
 
 def peak_torque(robot) -> np.ndarray:

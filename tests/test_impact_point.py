@@ -311,3 +311,22 @@ def test_the_cache_key_tells_contact_models_apart_by_their_parameters(pusher_rob
     far, near = np.zeros(2000), np.zeros(2000)
     near[1000] = 1e-9  # repr elides the middle of a long array
     assert repr(far) == repr(near) and key(Scaled(0.3, far)) != key(Scaled(0.3, near))
+
+
+def test_a_point_whose_own_geoms_cannot_collide_strikes_with_its_parents():
+    """Gymnasium ``Pusher-v5``'s ``tips_arm`` has only non-colliding geoms: its strikes are its wrist's (the nearest
+    body above whose subtree collides), never silently none; Brax ``pusher``'s wrist keeps its own subtree."""
+    import gymnasium
+
+    from jaxlimits.envs.impact_point import striking_geoms
+
+    m = gymnasium.make("Pusher-v5").unwrapped.model
+    name = lambda i: mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.geom_bodyid[i]))  # noqa: E731
+    tips = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "tips_arm")
+    own = m.geom_bodyid == tips
+    assert own.any() and not np.any((m.geom_contype[own] != 0) | (m.geom_conaffinity[own] != 0))
+    geoms = striking_geoms(m, tips)
+    assert {name(i) for i in np.flatnonzero(geoms)} == {"r_wrist_roll_link", "tips_arm"}
+    assert np.any(geoms & (m.geom_conaffinity != 0))
+    wrist = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "r_wrist_roll_link")
+    np.testing.assert_array_equal(striking_geoms(m, wrist), geoms)
