@@ -142,6 +142,7 @@ def test_violation_metrics_rename_the_shields_record():
         "shield/nonviable": 1.0,
         "shield/nonfinite": 1.0,
         "shield/torque_conflict": 0.0,
+        "shield/disturbance": 0.5,
     }
     state = State(
         pipeline_state=None,
@@ -157,6 +158,7 @@ def test_violation_metrics_rename_the_shields_record():
     assert float(m["violation/velocity"]) == 0.25 and float(m["violation/torque"]) == 2.0
     assert float(m["intervention"]) == 3.0 and float(m["viable"]) == 0.0 and float(m["nonfinite_action"]) == 1.0
     assert float(m["torque_box_conflict"]) == 0.0
+    assert float(m["disturbance"]) == 0.5  # a contact pushed a shielded joint: the evaluator's disturbed steps
 
 
 @pytest.mark.parametrize(
