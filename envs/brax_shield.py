@@ -401,9 +401,8 @@ class JointLimitShield(Wrapper):
             if self.impact is not None:
                 touch = self.impact.striking(ds)
                 if band is not None and self.impact.enforce:
-                    # not in a strike (its first substep or its open window): the velocity jump is the cap's to bound,
-                    # and holding the acceleration in the band would push the point on into the surface
-                    in_strike = touch & ((strike["hit"] == 0) | (strike["open"] > 0))
+                    # no correction in a strike: the jump is the cap's to bound (strike_record.in_strike)
+                    in_strike = strike_record.in_strike(strike, touch)
                     band = tuple(jnp.where(in_strike, jnp.inf * side, b) for side, b in zip((-1.0, 1.0), band))
             dn, inv, out = act.finish_substep(ds, Ms, fs, a, band)
             strike, rec = record(ds, dn, inv, out, a, strike, touch)
@@ -416,9 +415,7 @@ class JointLimitShield(Wrapper):
         strike0 = None
         if kept is not None:  # the record a step starts from: afresh at an episode's first step (time 0: also after
             # Brax's AutoResetWrapper, which restores the reset's pipeline_state but not info), re-armed after a strike
-            first_step = pipeline_state.time == 0
-            fresh = strike_record.fresh(rob.n, jnp.where(first_step, 0.0, kept["struck"]))
-            strike0 = strike_record.start_step(kept, fresh, first_step)
+            strike0 = strike_record.start_step(kept, strike_record.fresh(rob.n), pipeline_state.time == 0)
         # one batching round under vmap
         init = batched_like((pipeline_state, dec0, vec, strike0), pipeline_state.qpos)
         (d_end, dec, a_des, strike_end), recs = jax.lax.scan(substep, init, jnp.arange(self.n_frames))

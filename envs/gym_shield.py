@@ -406,7 +406,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         speed = -np.inf
         if imp is not None:  # the strike record this call starts from (re-armed after a closed strike)
             kept = self._strike
-            strike0 = strike_record.start_step(kept, strike_record.fresh(n, kept["struck"], np), False, np)
+            strike0 = strike_record.start_step(kept, strike_record.fresh(n, xp=np), False, np)
             strike, touched = strike0, False
         for k in range(n_frames):
             if k:
@@ -418,7 +418,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 speed = max(speed, w0)
                 touch = imp.c_striking(d)
                 touched |= touch
-                if touch and imp.enforce and (strike["hit"] == 0 or strike["open"] > 0):
+                if imp.enforce and strike_record.in_strike(strike, touch):
                     band_k = None  # in a strike the jump is the cap's to bound (as JointLimitShield)
                 q0, v0 = d.qpos[qadr].copy(), d.qvel[dofs].copy()
             inv, out_k = act.finish_substep(d, M, f, a_safe, band_k, rk4_tol)
@@ -495,17 +495,19 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 strike_speed=float(fig["speed"]),
             )
 
+    def _rows_joint_force(self, m, d, rows) -> np.ndarray:
+        """``(n,)`` ``J^T f`` on the shielded dofs over the constraint rows ``rows`` (``(nefc,)`` bool) of this
+        substep's solve [N m or N] (a view of a reused buffer)."""
+        mujoco.mj_mulJacTVec(m, d, self._jtf, np.where(rows, d.efc_force[: d.nefc], 0.0))
+        return self._jtf[self._dofs]
+
     def _contact_joint_force(self, m, d) -> np.ndarray:
         """``(n,)`` the contacts' joint force on the shielded dofs in this substep's constraint solve [N m or N]
-        (``J^T f`` over the contact rows; the joint-limit rows left out), as ``JointLimitShield`` measures it."""
-        nefc = d.nefc
-        if nefc == 0:
+        (the contact rows; the joint-limit rows left out), as ``JointLimitShield`` measures it."""
+        if d.nefc == 0:
             return np.zeros(self._n)
-        force = np.where(
-            d.efc_type[:nefc] >= int(mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS), d.efc_force[:nefc], 0.0
-        )
-        mujoco.mj_mulJacTVec(m, d, self._jtf, force)
-        return self._jtf[self._dofs].copy()
+        contact = d.efc_type[: d.nefc] >= int(mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS)
+        return self._rows_joint_force(m, d, contact).copy()
 
     def _disturbed(self, m, d) -> bool:
         """Did a constraint force other than the shielded joints' own limit rows act on a shielded dof this
@@ -517,8 +519,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         own = (d.efc_type[:n] == mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT) & np.isin(d.efc_id[:n], self._joint_ids)
         if not own.any():
             return True
-        mujoco.mj_mulJacTVec(m, d, self._jtf, np.where(own, 0.0, d.efc_force[:n]))
-        return bool(np.any(self._jtf[self._dofs] != 0.0))
+        return bool(np.any(self._rows_joint_force(m, d, ~own) != 0.0))
 
     def _buffers(self, n_frames: int):
         """Per-substep records, reused (cached per ``n_frames``): positions ``Q (n_frames, n)``, velocities

@@ -47,11 +47,20 @@ def fresh(n: int, struck=None, xp=jnp) -> dict:
 
 
 def start_step(kept: dict, fresh_record: dict, first_step, xp=jnp) -> dict:
-    """The record a control step starts from: ``fresh_record`` at an episode's first step (``first_step``, a bool
-    ``()``) or once ``kept``'s strike has closed and a whole step passed off contact, else ``kept``.
-    ``fresh_record`` carries the fields a caller adds, and ``struck`` (reset at an episode's first step, else kept)."""
+    """The record a control step starts from: ``fresh_record`` (``fresh``'s fields and those a caller adds) at an
+    episode's first step (``first_step``, a bool ``()``) or once ``kept``'s strike has closed and a whole step passed
+    off contact, else ``kept``; ``struck`` is 0 at an episode's first step, else ``kept``'s (kept across re-arms)."""
     new = first_step | ((kept["hit"] > 0) & (kept["open"] == 0) & (kept["off"] > 0))
-    return {k: xp.where(new, fresh_record[k], kept[k]) for k in fresh_record}
+    record = {k: xp.where(new, fresh_record[k], kept[k]) for k in fresh_record}
+    record["struck"] = xp.where(first_step, 0.0, kept["struck"]).astype(np.float32)
+    return record
+
+
+def in_strike(record: dict, in_contact):
+    """Whether a substep with ``in_contact`` (bool ``()``) belongs to a strike: its first substep (no window opened
+    yet) or one in its open window. There the velocity jump is the impact cap's to bound: a shield holding the
+    realised acceleration in its bounds against the contact would push the point on into the surface."""
+    return in_contact & ((record["hit"] == 0) | (record["open"] > 0))
 
 
 def advance(
@@ -107,4 +116,4 @@ def finish(start: dict, end: dict, contact_in_step, dt_impact: float, tau_imp_ma
     return record, strike
 
 
-__all__ = ["advance", "finish", "fresh", "impulsive_ratio", "start_step"]
+__all__ = ["advance", "finish", "fresh", "impulsive_ratio", "in_strike", "start_step"]

@@ -291,14 +291,14 @@ class WallStrike(ArmReach):
         }
         return State(d, self._obs(d, wall), zero, zero, metrics, info)
 
-    def _fresh_impact(self, d, struck=None) -> dict:
+    def _fresh_impact(self, d) -> dict:
         """An armed impact record (``strike_record.fresh``, no strike measured yet) at ``d`` (positions computed), with
         this env's own fields: the joint momentum change and largest joint speeds over the window, the ball's centre
-        and last normal velocity; ``struck``: whether the episode has struck before (the task's success)."""
+        and last normal velocity."""
         zero = jnp.zeros((), jnp.float32)
         zn = jnp.zeros((self.n,), jnp.float32)
         return {
-            **strike_record.fresh(self.n, struck),
+            **strike_record.fresh(self.n),
             "momentum": zn,
             "vmax": zn,
             "ball_prev": self._ball_center(d),
@@ -340,8 +340,7 @@ class WallStrike(ArmReach):
             dtau, _, dqacc = contact_correction(
                 jnp, np.arange(self.n), M, M, impl.efc_J, D_active, qfrc, band, (-tau_max - applied, tau_max - applied)
             )
-            striking = in_contact & ((imp["hit"] == 0) | (imp["open"] > 0))
-            tau = jnp.where(striking, tau, applied + dtau)
+            tau = jnp.where(strike_record.in_strike(imp, in_contact), tau, applied + dtau)
             d = _solve(self.sys, self._actuate(d_free.replace(qacc_warmstart=d.qacc + dqacc), tau))
         frc = d.qfrc_constraint
         d_act = d.qfrc_actuator
@@ -391,8 +390,7 @@ class WallStrike(ArmReach):
         # step (no substep in contact), the record re-arms, so the next contact (a re-strike after a bounce or a
         # pull-back) is measured too
         first_step = d0.time == 0
-        fresh = self._fresh_impact(d0, struck=jnp.where(first_step, 0.0, kept["struck"]))
-        imp0 = strike_record.start_step(kept, fresh, first_step)
+        imp0 = strike_record.start_step(kept, self._fresh_impact(d0), first_step)
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
             lambda c, _: self._substep_contact(c, a, band), (d0, imp0), None, length=self.frame_skip
         )
