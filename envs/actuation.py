@@ -27,7 +27,14 @@ constraints' own response: one Newton step on the solver's piecewise-quadratic p
     dr = G dtau,   G = M_eff^-1 M H^-1,   H = M + J^T diag(D active) J      (restricted to the shielded dofs),
 
 exact while the active constraint rows do not change (the solver's Hessian, as MJX's Newton solver
-forms it); then the substep is solved again with the corrected ctrl and integrated (where the
+forms it). The torque change is the least one, inside the torque the actuators have left at the substep
+(``robot.torque_range`` less what they applied), that puts every shielded dof inside the band (a box QP:
+``contact_correction(torque_box=)``); where none does, the band is missed least and the joints are counted
+saturated. The unboxed ``dtau = -G^-1 out`` (kept for C MuJoCo's RK4 retakes) is exact where ``G`` is well
+conditioned, but against a stiff contact (a ball pressed on a frictionless wall) ``G`` is nearly singular, its torque
+pulls the body off the contact the response assumed active, and the joints take it (the wall task on MJX: 26
+velocity- and 180 position-violating steps of 3 200, 0 and 4 boxed, those 4 after counted saturations). Then the
+substep is solved again with the corrected ctrl and integrated (where the
 shielded joints share a tree with unshielded dofs, a floating or planar base or a gripper's fingers: twice,
 ``MJX_CORRECTION_PASSES``, the second pass from the rows the first one's torque made or broke, on MJX and
 in C MuJoCo's Euler/implicitfast; elsewhere once). Brax's ``ant`` and ``humanoid`` run MJX's solver for one
@@ -115,13 +122,15 @@ def shielded_torque(xp, robot_arrays, actuator_force):
     return gear * clamp(xp, actuator_force, f_rng[:, 0], f_rng[:, 1])
 
 
-def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None):
+def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None, tau=None):
     """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring. ``dtau`` ``(n,)`` [N m]: a
     torque added to the one realising ``a`` (the contact correction; where the actuators lack it, that is a
-    saturation, counted with the torque they lacked)."""
+    saturation, counted with the torque they lacked). ``tau`` ``(n,)`` [N m]: the joint torque to apply,
+    given (MJX's boxed contact correction), in place of the one realising ``a``."""
     dofs, other, gear, gain, bias, c_rng, f_rng = robot_arrays
-    M_s, f_s = joint_dynamics(xp, M_eff, f_other, dofs, other, coupled)
-    tau = M_s @ a - f_s
+    if tau is None:
+        M_s, f_s = joint_dynamics(xp, M_eff, f_other, dofs, other, coupled)
+        tau = M_s @ a - f_s
     if dtau is not None:
         tau = tau + dtau
     b = bias[:, 0] + bias[:, 1] * gear * q + bias[:, 2] * gear * v
@@ -151,46 +160,86 @@ def contact_response(xp, dofs, M, M_eff, J, D_active):
     return sub_block(xp.linalg.solve(M_eff, M @ H_inv), dofs, dofs), H_inv
 
 
-def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=None, inset=None):
+def _boxed_qp(G, h, t_lo, t_hi, scale):
+    """``contact_correction``'s torque change ``(n,)``: the least ``dtau`` (each relative to ``scale``) in
+    ``[t_lo, t_hi]`` with ``[G; -G] dtau <= h`` (``(2n,)``), met with least violation where no box point does."""
+    rows = jnp.concatenate([G, -G], axis=0)
+    return jl.solve_box_qp(jnp.zeros_like(t_lo), t_lo, t_hi, 1.0 / scale**2, G=rows, h=h).x
+
+
+_boxed_qp_jit = jax.jit(_boxed_qp)
+
+
+class Correction(NamedTuple):
+    """``contact_correction``'s answer, ``(n,)`` each but ``dqacc``."""
+
+    dtau: jax.Array  # [N m] the torque change
+    out: jax.Array  # [rad/s^2] the excess over the band before it (0 inside)
+    dqacc: jax.Array  # (nv,) the change of the solver's qacc it predicts, H^-1 dtau (the second solve's warm start)
+    miss: jax.Array  # [rad/s^2] the excess over the band it predicts after it (0: met; torque_box only, else 0)
+
+
+def contact_correction(xp, dofs, M, M_eff, J, D_active, qfrc, band, torque_box=None, inset=None) -> Correction:
     """The torque change ``(n,)`` [N m] bringing the shielded dofs' realised acceleration back into ``band``
     (module docstring): ``M`` ``(nv, nv)`` the mass matrix the constraint solver used, ``J`` ``(nefc, nv)``,
     ``D_active`` ``(nefc,)`` the active rows' impedance (0 elsewhere), ``qfrc`` ``(nv,)`` qfrc_smooth +
-    qfrc_constraint of the solved substep. Returns ``(dtau, out, dqacc)``: ``out`` ``(n,)`` the excess over
-    the band before the correction (0 inside), ``dqacc`` ``(nv,)`` the change of the solver's ``qacc`` it
-    predicts (``H^-1 dtau``: the second solve's warm start). A singular response (no finite answer) gives
-    ``dtau = 0``.
+    qfrc_constraint of the solved substep. Returns a ``Correction``. A singular response (no finite answer)
+    gives ``dtau = 0``.
 
-    ``torque_box = (dtau_lo, dtau_hi)`` ``(n,)`` each (JAX only): the torque change the actuators can still
-    add. Then ``dtau`` is the least change (relative to each range) inside that box that puts every shielded
-    dof's acceleration inside the band, ``lo - r <= G dtau <= hi - r``: the dofs already inside may move
-    within it, so a joint whose motor is too weak to hold a contact's push is relieved by the others
-    (pushing less into the contact); where no torque in the box does it, the box holds and the band is
-    missed least (``jl.solve_box_qp``). Without it, ``dtau = -G^-1 out`` (the others' accelerations kept).
+    ``torque_box = (dtau_lo, dtau_hi)`` ``(n,)`` each: the torque change the actuators can still
+    add (``±inf`` where unbounded). Then ``dtau`` is the least change (relative to each range) inside that box that
+    puts every shielded dof's acceleration inside the band, ``lo - r <= G dtau <= hi - r``: the dofs already
+    inside may move within it, so a joint whose motor is too weak to hold a contact's push is relieved by the
+    others (pushing less into the contact); where no torque in the box does it, the box holds and the band is
+    missed least (``jl.solve_box_qp``; ``miss`` then says by how much). Without it, ``dtau = -G^-1 out`` (the
+    others' accelerations kept): exact where ``G`` is well conditioned, but where a stiff contact row makes it
+    nearly singular (a ball pressed on a frictionless wall) that torque is large, pulls the body off the contact
+    the response assumed active, and the joints take it (the wall task: 41 velocity-violating steps in 12 800,
+    0 with the box).
 
-    ``inset`` ``(n,)`` [rad/s^2] (MJX, without ``torque_box``): a dof pushed out of the band by more than ``inset``
-    is aimed this far inside its edge (at most half the band's width), so that the residual of an inexact solve
-    does not leave it; ``out`` is still measured from the edge, and a dof inside the band stays where it is."""
+    ``inset`` ``(n,)`` [rad/s^2] (MJX): a dof pushed out of the band by more than ``inset`` is aimed this far inside
+    its edge (at most half the band's width), so that the residual of an inexact solve does not leave it; ``out``
+    is still measured from the edge, and a dof inside the band stays where it is."""
     r = xp.linalg.solve(M_eff, qfrc)[dofs]
     lo, hi = band
     out = band_excess(xp, r, lo, hi)
-    target_out = out
+    target_lo, target_hi = lo, hi
     if inset is not None:
-        inset = xp.minimum(inset, 0.5 * (hi - lo))
         # only a push beyond the inset: roundoff at the edge (the decision's own answer) stays a correction to it
-        target_out = out + xp.where(out > inset, inset, xp.where(out < -inset, -inset, 0.0))
+        inset = xp.minimum(inset, 0.5 * (hi - lo))
+        target_lo = lo + xp.where(out < -inset, inset, 0.0)
+        target_hi = hi - xp.where(out > inset, inset, 0.0)
     G, H_inv = contact_response(xp, dofs, M, M_eff, J, D_active)
     if torque_box is None:
-        dtau = -xp.linalg.solve(G, target_out)
+        dtau = -xp.linalg.solve(G, band_excess(xp, r, target_lo, target_hi))
     else:
-        t_lo, t_hi = torque_box
-        scale = xp.maximum(t_hi - t_lo, 1e-9)
-        rows = xp.concatenate([G, -G], axis=0)
-        # the band widened by the roundoff of r: a dof inside it stays inside
-        h = xp.concatenate([hi - r, r - lo]) + 1e-6 * (1.0 + xp.abs(xp.concatenate([hi, lo])))
-        zero = xp.zeros_like(r)
-        dtau = jl.solve_box_qp(zero, xp.minimum(t_lo, 0.0), xp.maximum(t_hi, 0.0), 1.0 / scale**2, G=rows, h=h).x
-    dtau = xp.where(xp.all(xp.isfinite(dtau)) & xp.any(out != 0), dtau, 0.0)
-    return dtau, out, H_inv[:, dofs] @ dtau
+        t_lo, t_hi = xp.minimum(torque_box[0], 0.0), xp.maximum(torque_box[1], 0.0)
+        width = t_hi - t_lo
+        finite = xp.isfinite(width)
+        widest = xp.max(xp.where(finite, width, 0.0))
+        # an unbounded actuator: weighed as the widest bounded one, boxed far beyond any torque the actuators have
+        scale = xp.maximum(xp.where(finite, width, widest), 1e-9)
+        reach = 1e6 * (1.0 + widest)
+        t_lo, t_hi = xp.maximum(t_lo, -reach), xp.minimum(t_hi, reach)
+        # the band widened by the roundoff of r (~1e-6 relative in float32): a dof inside it stays inside
+        eps = 8 * np.finfo(r.dtype).eps
+        tol = eps * (1.0 + xp.abs(xp.concatenate([hi, lo])))
+        h = xp.concatenate([target_hi - r, r - target_lo]) + tol
+        if xp is np:  # C MuJoCo: the QP compiled once per size, in float64 as the rest, run where a contact pushed
+            with jax.enable_x64(True):
+                dtau = np.asarray(_boxed_qp_jit(G, h, t_lo, t_hi, scale), np.float64)
+        else:
+            dtau = _boxed_qp(G, h, t_lo, t_hi, scale)
+    ok = xp.all(xp.isfinite(dtau)) & xp.any(out != 0)
+    dtau = xp.where(ok, dtau, 0.0)
+    if torque_box is None:
+        miss = xp.zeros_like(r)
+    else:
+        # met where inside the band widened by the QP's tolerance and roundoff
+        n = r.shape[0]
+        slack = eps * (xp.abs(r) + xp.abs(G) @ xp.abs(dtau))
+        miss = xp.where(ok, band_excess(xp, r + G @ dtau, lo - tol[n:] - slack, hi + tol[:n] + slack), out)
+    return Correction(dtau, out, H_inv[:, dofs] @ dtau, miss)
 
 
 def tree_dof_mask(model, dof_adr) -> np.ndarray:
@@ -341,7 +390,9 @@ class MjxActuation:
         (module docstring).
 
         Returns ``(d, inversion, out)``: ``out`` the excess of the uncorrected realised acceleration over
-        the band [rad/s^2] (``(n,)``, zeros without correction). ``MJX_CORRECTION_PASSES`` corrections, each
+        the band [rad/s^2] (``(n,)``, zeros without correction). Corrected, the inversion realises the boxed
+        correction's torque, and ``saturated`` / ``torque_excess`` say where no torque the actuators have meets the
+        band (the excess: the predicted miss times the joints' own inertia ``M_eff,ss``, an estimate). ``MJX_CORRECTION_PASSES`` corrections, each
         from the last solve's rows, aimed ``MJX_CORRECTION_INSET`` a_max inside the band, where
         ``robot.coupled`` (a floating or planar base: its feet's contact rows change with the torque), else one
         (a fixed base: Brax ``pusher``'s strikes are saturations a second pass does not fix, 18 -> 16 violating
@@ -350,8 +401,8 @@ class MjxActuation:
         dofs = self._arrays[0]
         q, v = d.qpos[self.robot.qpos_adr], d.qvel[dofs]
 
-        def invert(dtau=None):
-            return Inversion(*_invert(jnp, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau))
+        def invert(dtau=None, tau=None):
+            return Inversion(*_invert(jnp, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau, tau))
 
         inv = invert()
         dc = self._constraint_stage(d, inv.ctrl)
@@ -360,23 +411,30 @@ class MjxActuation:
         # keeps its joints off their own limits' rows, and a model without either pays nothing
         if band is not None and (d._impl.ncon or self._other_rows) and self._integrate is not mjx.rungekutta4:
             # passes: a correction that makes or breaks a contact row is corrected again from the new rows
-            dtau = jnp.zeros_like(a)
             M = mjx_stages.full_m(self.sys, dc)
+            t_lo, t_hi = torque_range(jnp, self._arrays, q, v)
             inset = jnp.asarray(self._inset, a.dtype)
             for k in range(self._passes):
                 impl = dc._impl
                 D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
                 qfrc = dc.qfrc_smooth + dc.qfrc_constraint
-                step, out_k, dqacc = contact_correction(
-                    jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band, inset=inset
+                # the box: the torque the actuators can add to what they applied in this solve
+                applied = shielded_torque(jnp, self._arrays, dc.actuator_force[self._act])
+                fix = contact_correction(
+                    jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band, (t_lo - applied, t_hi - applied), inset
                 )
                 if k == 0:  # the push as the shield's ctrl met it (the metric); later passes correct its residual
-                    out = out_k
-                dtau = dtau + step
-                inv = invert(dtau)
+                    out = fix.out
+                # a correction inside the box asks no more than the actuators have: it saturates only where no torque
+                # in the box meets the band, lacking (counted at the joints' own inertia) what the miss would take
+                missed = fix.miss != 0
+                lacked = jnp.abs(sub_block(M_eff, dofs, dofs) @ fix.miss)
+                inv = invert(tau=applied + fix.dtau)._replace(
+                    torque_excess=jnp.where(missed, lacked, 0.0), saturated=missed
+                )
                 # warm-started at the predicted answer: the solver's loop (run until a batch's slowest member is
                 # done) then stops after an iteration or two
-                dc = self._constraint_stage(d.replace(qacc_warmstart=dc.qacc + dqacc), inv.ctrl)
+                dc = self._constraint_stage(d.replace(qacc_warmstart=dc.qacc + fix.dqacc), inv.ctrl)
         return self._integrate(self.sys, dc), inv, out
 
 
@@ -491,12 +549,22 @@ class CActuation:
                 if not outside or k == passes:
                     break
                 J, D_active = (rows[1], rows[2]) if k == 0 else (self._efc_jacobian(d), self._efc_d_active(d))
-                step, out_k, dqacc = contact_correction(np, self._dofs, rows[0], M_eff, J, D_active, qfrc, band)
+                box = None
+                if not self._rk4:  # the box: the torque the actuators can add to what they applied (MJX's rule)
+                    applied = shielded_torque(np, self._arrays, d.actuator_force[self._act])
+                    t_lo, t_hi = torque_range(np, self._arrays, q, v)
+                    box = (t_lo - applied, t_hi - applied)
+                fix = contact_correction(np, self._dofs, rows[0], M_eff, J, D_active, qfrc, band, box)
                 if k == 0:  # the push as the shield's ctrl met it (the metric); later passes correct its residual
-                    out = out_k
-                d.qacc_warmstart[:] = d.qacc + dqacc
-                dtau = dtau + step
-                ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
+                    out = fix.out
+                d.qacc_warmstart[:] = d.qacc + fix.dqacc
+                if box is None:
+                    dtau = dtau + fix.dtau
+                    ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
+                else:  # as MJX's: saturated where no torque in the box meets the band
+                    ctrl = _invert(np, self._arrays, M_eff, f_other, a, q, v, False, tau=applied + fix.dtau)[0]
+                    sat = fix.miss != 0
+                    excess = np.where(sat, np.abs(sub_block(M_eff, self._dofs, self._dofs) @ fix.miss), 0.0)
                 d.ctrl[self._act] = ctrl
             if not self._rk4 and best[1] is not ctrl:  # a correction made it worse: the best torque evaluated
                 _, ctrl, excess, sat = best  # (dtau is read after this only by RK4)

@@ -52,8 +52,8 @@ servo that cannot hold back gravity braking harder than ``a_max`` [rad/s^2]), ``
 (how far a contact would have pushed a substep's realised acceleration out of the bounds before the
 correction [rad/s^2]). The guarantee is exact for the model's own dynamics. A contact's force depends on
 the acceleration: where one would push the realised acceleration out of the bounds, the actuators are
-given the torque that holds it at their edge under the contact's own response
-(``MjxActuation.finish_substep``, ``correct_contacts=True``); where they lack that torque (a hard impact,
+given the least torque change, within what they have left, that holds it inside the bounds under the
+contact's own response (``MjxActuation.finish_substep``, ``correct_contacts=True``); where they lack that torque (a hard impact,
 e.g. Brax ``pusher``'s hand striking its table), the contact pushes the joint on: a saturation and, maybe,
 a violation, both counted. A trajectory no contact touched never violates (measured).
 """
@@ -427,9 +427,8 @@ class JointLimitShield(Wrapper):
         rec["nonviable"] = ~jnp.all(dec.viable)
         rec["torque_conflict"] = dec.conflict
         rec["beyond_bounds"] = SafeAcceleration.beyond_bounds(dec)
-        if "jerk" in self.violations:  # float32, as the decision and ArmReach's measure
-            step_max = jnp.asarray(rob.limits.j_max, jnp.float32) * jnp.float32(self.decide.dt)
-            rec["jerk"] = jnp.maximum(jnp.max(jnp.abs(a.astype(jnp.float32) - a_prev) - step_max), 0.0)
+        if "jerk" in self.violations:
+            rec["jerk"] = self.decide.jerk_excess(a, a_prev)
         strike = None
         if self.impact is not None:
             rec["impact_cap"] = dec.impact_cap

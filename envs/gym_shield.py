@@ -41,8 +41,8 @@ Contact and joint-limit constraint forces depend on the acceleration, so step 4'
 out; ``info["shield"]["constrained"]`` says whether a constraint force acted on a shielded dof in some
 substep. Where one would push a substep's realised acceleration out of the bounds, the substep is
 corrected (``correct_contacts=True``, ``CActuation.finish_substep``: the constraint problem solved once
-with the shield's ctrl, then the actuators given the torque that holds the acceleration at the bounds'
-edge under the contact's own response; ``info["shield"]["contact_corrected"]`` how far it would have
+with the shield's ctrl, then the actuators given the least torque change, within what they have left, that
+holds the acceleration inside the bounds under the contact's own response; ``info["shield"]["contact_corrected"]`` how far it would have
 left them). Where the actuators lack that torque (Gymnasium's Pusher striking its table), the contact
 pushes the joint on: a saturation and, maybe, a violation, both counted (``tests/test_gym_shield.py``
 measures it). Euler and
@@ -284,8 +284,6 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         # strikes (measured per substep, envs/strike_record.py)
         self.violations = VIOLATIONS + (("jerk",) if lim.j_max is not None else ())
         self.violations += ("impact",) if self.impact is not None else ()
-        # the jerk measured where the robot has j_max: the change of the held acceleration beyond j_max dt [rad/s^2]
-        self._j_max = None if lim.j_max is None else np.asarray(lim.j_max, np.float32)
         self._strike = None if self.impact is None else strike_record.fresh(n, xp=np)
         self._efc_contact = np.zeros(0)  # the contact rows' forces (buffer of ``_contact_joint_force``)
         self.tally = _zero_tally(self.violations)
@@ -367,7 +365,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         if ctrl.shape != (self._nu,):
             raise ValueError(f"Action dimension mismatch. Expected {(self._nu,)}, found {ctrl.shape}")
         n_frames = int(n_frames)
-        _, compiled = self._decider(n_frames)
+        decide, compiled = self._decider(n_frames)
         bad = ~(np.abs(ctrl) <= MJ_MAXVAL)
         bad_in = bool(bad.any())
         shielded_bad = False
@@ -478,9 +476,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 "beyond_bounds": max(float(np.maximum(a_safe - upper, lower - a_safe).max()), 0.0),
             }
         )
-        if self._j_max is not None:  # float32, as the decision and the Brax shield's measure
-            jerk = np.max(np.abs(self.a_prev - a_prev) - self._j_max * np.float32(self._h * n_frames))
-            self._records[-1]["jerk"] = max(float(jerk), 0.0)
+        if "jerk" in self.violations:
+            self._records[-1]["jerk"] = float(decide.jerk_excess(self.a_prev, a_prev, np))
         if imp is not None:
             cap, infeasible, active = float(out[4 * n + 2]), bool(out[4 * n + 3] > 0.5), bool(out[4 * n + 4] > 0.5)
             self._strike, fig = strike_record.finish(strike0, strike, touched, imp.dt_impact, imp.tau_imp_max, np)

@@ -37,6 +37,7 @@ from mujoco.mjx._src import support as _mjx_support  # jac_dot: not re-exported 
 import numpy as np
 
 import jaxlimits.impact as _impact
+from jaxlimits.envs.content_cache import array_key
 
 
 class ImpactPoint(NamedTuple):
@@ -199,9 +200,10 @@ REACH_STEPS = 3  # control steps of approach at the velocity limits within which
 
 
 def _digest(x):
-    """``ImpactModel.key``'s digest of one field: an array's bytes, a contact model's ``key()``, else ``repr``."""
+    """``ImpactModel.key``'s digest of one field: an array's dtype, shape and bytes (``array_key``), a contact model's
+    ``key()``, else ``repr``."""
     if isinstance(x, np.ndarray):
-        return x.tobytes()
+        return array_key(x)
     return x.key() if isinstance(x, _impact.ContactModel) else repr(x)
 
 

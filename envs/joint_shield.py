@@ -96,8 +96,11 @@ class SafeAcceleration:
             raise ValueError(f"gradient must be one of {jl.PROJECTION_GRADIENTS}, got {gradient!r}")
         if method == "jerk" and robot.limits.j_max is None:
             raise ValueError("method='jerk' needs j_max (argument or <numeric name='jaxlimits_j_max'>)")
-        if impact is not None and method == "none":
-            raise ValueError("an impact cap needs the bounds of a method: 'viability', 'jerk' or 'naive', not 'none'")
+        if impact is not None and method == "none" and impact.enforce:
+            raise ValueError(
+                "an enforced impact cap needs the bounds of a method: 'viability', 'jerk' or 'naive', not 'none' "
+                "(unshielded, ImpactPoint(enforce=False) measures the strikes only)"
+            )
         self.robot, self.method, self.gradient = robot, method, gradient
         self.impact = impact  # an ``impact_point.ImpactModel`` or None
         self.n_frames = int(n_frames)
@@ -308,6 +311,14 @@ class SafeAcceleration:
         acceleration or jerk limit given way; see ``_torque_space``)."""
         out = jnp.maximum(dec.a_safe - dec.upper, dec.lower - dec.a_safe)
         return jnp.maximum(jnp.max(out, axis=-1), jnp.zeros((), out.dtype))
+
+    def jerk_excess(self, a, a_prev, xp=jnp):
+        """How far the held acceleration's change over the step, ``a - a_prev`` ``(n,)`` [rad/s^2], exceeds the
+        robot's ``j_max dt`` (its largest over the joints, 0 within; float32, as the decision computes it; the robot
+        must have ``j_max``). ``xp``: ``jnp`` (the Brax shield) or ``numpy`` (the Gymnasium wrapper)."""
+        f32 = xp.float32
+        step_max = xp.asarray(self.robot.limits.j_max, f32) * f32(self.dt)
+        return xp.maximum(xp.max(xp.abs(xp.asarray(a, f32) - a_prev) - step_max), f32(0.0))
 
     def violations(self, q, v) -> dict:
         """Excess over the model's own limits at one substep's state ``(..., n)``: ``position``, ``velocity``

@@ -337,7 +337,7 @@ class WallStrike(ArmReach):
             qfrc = d.qfrc_smooth + d.qfrc_constraint
             tau_max = self._f32(self.tau_max)
             applied = jnp.clip(tau, -tau_max, tau_max)  # what the motors applied in the solve (ctrlrange)
-            dtau, _, dqacc = contact_correction(
+            dtau, _, dqacc, _ = contact_correction(
                 jnp, np.arange(self.n), M, M, impl.efc_J, D_active, qfrc, band, (-tau_max - applied, tau_max - applied)
             )
             tau = jnp.where(strike_record.in_strike(imp, in_contact), tau, applied + dtau)

@@ -48,6 +48,11 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 
+# MUJOCO_GL=egl where there is no display, before any test file imports mujoco (MuJoCo reads it at import): a file
+# importing mujoco first left the worker without a headless renderer, and Gymnasium's check_env in a later file of
+# the same worker failed on GLFW (test_gym_shield.py, then test_envs_gym.py)
+import jaxlimits.envs  # noqa: E402, F401
+
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 settings.register_profile(

@@ -225,6 +225,22 @@ def test_a_shield_targets_measured_limits_are_what_its_env_records(name, jerk):
     assert set(campaign.measured_by(target, env).measured) == want
 
 
+def test_the_unshielded_rows_of_a_target_with_an_impact_point_measure_its_strikes():
+    """``none`` on a target with an impact point (the one-shield wall) measures its strikes (the point measured only,
+    ``campaign_rows.shield_impact``), claims nothing; ``+impact`` enforces the cap; ``viability`` alone has none."""
+    from jaxlimits.envs.impact_point import ImpactPoint
+
+    point = ImpactPoint("ee", normal=(1.0, 0.0, 0.0))
+    assert campaign_rows.shield_impact("viability+impact", point) is point
+    assert campaign_rows.shield_impact("none", point) == point._replace(enforce=False)
+    assert campaign_rows.shield_impact("viability", point) is None
+    assert campaign_rows.shield_impact("none", None) is None
+    target = campaign.TARGETS["planar wall (one shield)"]
+    env = target.make("none")
+    assert "impact" in campaign.measured_by(target, env).measured
+    assert campaign_rows.guaranteed("none", target) == ()
+
+
 def test_a_trained_run_over_a_robot_claims_only_what_its_shield_measures(monkeypatch):
     """``--trained RUN`` of a ``planar_robot_reach`` run (the main job's reach): its target measures what
     ``JointLimitShield`` records (no acceleration: it was shown as a claimed **0** before), the torque unclaimed."""

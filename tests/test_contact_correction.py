@@ -140,22 +140,38 @@ def test_the_torque_box_moves_the_correction_to_the_joints_that_can_give_it(x64)
     qfrc = jnp.array([3.0, 0.5])  # realised r = M^-1 qfrc = (3, 0.5)
     band = (jnp.array([-1.0, -10.0]), jnp.array([1.0, 10.0]))
     H_inv = np.linalg.inv(np.eye(2) + 4.0 * np.ones((2, 2)))
-    plain, out, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band)
+    plain, out, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band)
     np.testing.assert_allclose(out, [2.0, 0.0])
     np.testing.assert_allclose(np.array([3.0, 0.5]) + H_inv @ np.asarray(plain), [1.0, 0.5], atol=1e-9)
     assert plain[0] < -1.0  # dof 0's motor would have to give more than it has
 
     box = (jnp.array([-1.0, -30.0]), jnp.array([1.0, 30.0]))
-    dtau, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=box)
+    dtau, _, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=box)
     r_new = np.array([3.0, 0.5]) + H_inv @ np.asarray(dtau)
     assert np.all(np.asarray(dtau) >= np.asarray(box[0]) - 1e-9) and np.all(
         np.asarray(dtau) <= np.asarray(box[1]) + 1e-9
     )
     assert np.all(r_new >= np.asarray(band[0]) - 1e-5) and np.all(r_new <= np.asarray(band[1]) + 1e-5), r_new
 
+    # C MuJoCo's path (NumPy in, the same QP compiled in float64) gives the same answer; an unbounded actuator
+    # (an infinite side) is boxed far out, and the band met leaves no miss
+    as_np = [np.asarray(x, np.float64) for x in (M, J, D, qfrc)]
+    fix = contact_correction(np, dofs, as_np[0], as_np[0], as_np[1], as_np[2], as_np[3], band, torque_box=box)
+    np.testing.assert_allclose(fix.dtau, np.asarray(dtau), rtol=1e-9, atol=1e-9)
+    assert np.all(fix.miss == 0)
+    free = (jnp.array([-1.0, -np.inf]), jnp.array([1.0, np.inf]))
+    fix = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=free)
+    r_new = np.array([3.0, 0.5]) + H_inv @ np.asarray(fix.dtau)
+    assert np.all(np.isfinite(fix.dtau)) and np.all(np.asarray(fix.miss) == 0), fix
+    assert np.all(r_new >= np.asarray(band[0]) - 1e-5) and np.all(r_new <= np.asarray(band[1]) + 1e-5), r_new
+
     tight = (jnp.array([-0.1, -0.1]), jnp.array([0.1, 0.1]))
-    dtau, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=tight)
+    dtau, _, _, miss = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, torque_box=tight)
     np.testing.assert_allclose(np.asarray(dtau), [-0.1, 0.1], atol=1e-6)  # the box holds: its corner nearest the band
+    # the miss it predicts: dof 0 still over its band by what the box could not take
+    r_new = np.array([3.0, 0.5]) + H_inv @ np.asarray(dtau)
+    np.testing.assert_allclose(np.asarray(miss), [r_new[0] - 1.0, 0.0], atol=1e-6)
+    assert miss[0] > 1.0
 
 
 def test_the_inset_aims_a_pushed_dof_inside_the_band_and_leaves_roundoff_at_the_edge(x64):
@@ -172,10 +188,10 @@ def test_the_inset_aims_a_pushed_dof_inside_the_band_and_leaves_roundoff_at_the_
     band = (jnp.array([-1.0, -1.0, 0.0]), jnp.array([1.0, 1.0, 0.01]))
     qfrc = jnp.array([3.0, -1.0 - 1e-7, 0.5])  # dof 0 pushed 2 over, dof 1 1e-7 under, dof 2 over a narrow band
     inset = jnp.full(3, 0.05)
-    dtau, out, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, inset=inset)
+    dtau, out, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band, inset=inset)
     np.testing.assert_allclose(out, [2.0, -1e-7, 0.49], atol=1e-12)
     np.testing.assert_allclose(np.asarray(qfrc) + np.asarray(dtau), [0.95, -1.0, 0.005], atol=1e-12)
-    plain, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band)
+    plain, _, _, _ = contact_correction(jnp, dofs, M, M, J, D, qfrc, band)
     np.testing.assert_allclose(np.asarray(qfrc) + np.asarray(plain), [1.0, -1.0, 0.01], atol=1e-12)
 
 

@@ -231,6 +231,7 @@ def test_bad_impact_input_is_an_eager_error_naming_it(pusher_robot):
         POINT._replace(c_range=(0.5, 0.2)).resolve(mjm, robot)
     with pytest.raises(ValueError, match="impact cap needs the bounds"):
         SafeAcceleration(robot, 5, method="none", impact=POINT.resolve(mjm, robot))
+    SafeAcceleration(robot, 5, method="none", impact=POINT._replace(enforce=False).resolve(mjm, robot))  # measured
     with pytest.raises(TypeError, match="ImpactPoint"):
         JointLimitShield(_pusher(), v_max=2.0, impact={"point": "r_wrist_roll_link"})
     # a position servo without forcerange: its torque grows with the error, no default impulsive bound

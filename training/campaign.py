@@ -14,7 +14,8 @@ the braking action, strikes, wall time and env-steps/s, and
 (the guarantee's scope: a contact the motors cannot hold pushes a joint on, counted in the limit's column and
 as contact-disturbed steps) plus the strikes over the impulsive-torque bound (the impact cap's claim). The
 ``none`` shield runs the same policies through the same code unshielded: its counts show that the policies
-do reach the limits (a campaign whose unshielded rows were clean would prove nothing).
+do reach the limits (a campaign whose unshielded rows were clean would prove nothing); where the target has an
+impact point its strikes are measured there too (the point measured only, ``campaign_rows.shield_impact``).
 
 Targets (``TARGETS``): the project's planar 3-link and 7-DoF Panda (torque) reach envs under
 ``SafetyWrapper`` (viability, jerk, viability + torque box, none); the planar wall strike (viability + impact
@@ -69,7 +70,7 @@ from jaxlimits.envs.arm import VIOLATION_KEYS
 from jaxlimits.training import checkpoint, evaluate
 from jaxlimits.training.campaign_gym import GYM_TARGETS
 from jaxlimits.training.campaign_policies import POLICY_CLASSES, TRAINED, campaign_policy
-from jaxlimits.training.campaign_rows import make_row
+from jaxlimits.training.campaign_rows import make_row, shield_impact
 
 
 class EvaluatorMetrics(Wrapper):
@@ -150,16 +151,16 @@ def _arm(env_name: str):
 
 
 def _third_party(make_env, inside: bool = False, impact=None, **kwargs):
-    """``impact``: the ``ImpactPoint`` the target's ``+impact`` shields cap (``JointLimitShield(impact=)``), or a
-    function of the env giving it (``strike.strike_point``)."""
+    """``impact``: the ``ImpactPoint`` the target's ``+impact`` shields cap (``JointLimitShield(impact=)``) and its
+    ``none`` rows measure (``campaign_rows.shield_impact``), or a function of the env giving it (``strike.strike_point``)."""
 
     def make(shield):
         from jaxlimits.envs import JointLimitShield
         from jaxlimits.envs.nonfinite_guard import NonFiniteActionGuard
 
-        method, *extras = shield.split("+")
+        method = shield.split("+")[0]
         task = make_env()
-        point = (impact(task) if callable(impact) else impact) if "impact" in extras else None
+        point = shield_impact(shield, impact(task) if callable(impact) else impact)
         env = JointLimitShield(task, method=method, impact=point, **kwargs)
         return EvaluatorMetrics(NonFiniteActionGuard(InsideReset(env) if inside else env))
 

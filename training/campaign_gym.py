@@ -61,7 +61,7 @@ import numpy as np
 from jaxlimits.envs.arm import VIOLATION_KEYS
 from jaxlimits.envs.impact_point import ImpactPoint
 from jaxlimits.training.campaign_policies import campaign_policy
-from jaxlimits.training.campaign_rows import make_row
+from jaxlimits.training.campaign_rows import make_row, shield_impact
 
 GYM_SHIELDS = ("viability", "none")
 GYM_MEASURED = ("position", "velocity", "torque")
@@ -189,7 +189,7 @@ def gym_env(env_id: str, start_inside: bool = False, impact=None, **shield_kwarg
     ``TimeLimit`` unless ``max_episode_steps`` is given) under ``JointLimitShieldWrapper(method=shield,
     **shield_kwargs)``, under a ``NonFiniteActionGuardWrapper``; ``start_inside``: the wrapper's (an env whose own
     reset starts outside the joint ranges); ``impact``: the ``ImpactPoint`` of the ``+impact`` shields (its rows
-    count ``cap infeasible``)."""
+    count ``cap infeasible``), measured only under ``none`` (``campaign_rows.shield_impact``)."""
 
     def make(shield: str, max_episode_steps: int | None = None):
         import gymnasium
@@ -198,8 +198,8 @@ def gym_env(env_id: str, start_inside: bool = False, impact=None, **shield_kwarg
         from jaxlimits.envs.gym_shield import JointLimitShieldWrapper
 
         env = gymnasium.make(env_id, max_episode_steps=max_episode_steps)
-        method, *extras = shield.split("+")
-        point = impact if "impact" in extras else None
+        method = shield.split("+")[0]
+        point = shield_impact(shield, impact)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # Pusher: the torque-derived a_max's quantile warning
             shielded = JointLimitShieldWrapper(

@@ -22,6 +22,18 @@ def guaranteed(shield: str, target=None) -> tuple:
     return tuple(k for k in claims if k in measured)
 
 
+def shield_impact(shield: str, point):
+    """The impact point ``shield``'s env gets from its target's ``point`` (an ``ImpactPoint`` or None): ``point`` for
+    the ``+impact`` shields (the cap enforced), ``point`` measured only (``enforce=False``) for ``none`` (the unshielded
+    rows count the strikes over the bound the cap exists for), None for the others."""
+    if point is None:
+        return None
+    method, *extras = shield.split("+")
+    if "impact" in extras:
+        return point
+    return point._replace(enforce=False) if method == "none" else None
+
+
 def make_row(target, shield: str, policy: str, s: dict, wall: float, compile_s: float) -> dict:
     """One campaign row of (``target``, ``shield``, ``policy``) from the counts ``s``, keyed as
     ``evaluate.summarize``'s row (``env_steps``, ``violations/<k>``, ``max_violation/<k>``,
