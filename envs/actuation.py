@@ -126,7 +126,7 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None,
     """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring. ``dtau`` ``(n,)`` [N m]: a
     torque added to the one realising ``a`` (the contact correction; where the actuators lack it, that is a
     saturation, counted with the torque they lacked). ``tau`` ``(n,)`` [N m]: the joint torque to apply,
-    given (MJX's boxed contact correction), in place of the one realising ``a``."""
+    given (the boxed contact correction), in place of the one realising ``a``."""
     dofs, other, gear, gain, bias, c_rng, f_rng = robot_arrays
     if tau is None:
         M_s, f_s = joint_dynamics(xp, M_eff, f_other, dofs, other, coupled)
@@ -392,8 +392,8 @@ class MjxActuation:
         Returns ``(d, inversion, out)``: ``out`` the excess of the uncorrected realised acceleration over
         the band [rad/s^2] (``(n,)``, zeros without correction). Corrected, the inversion realises the boxed
         correction's torque, and ``saturated`` / ``torque_excess`` say where no torque the actuators have meets the
-        band (the excess: the predicted miss times the joints' own inertia ``M_eff,ss``, an estimate). ``MJX_CORRECTION_PASSES`` corrections, each
-        from the last solve's rows, aimed ``MJX_CORRECTION_INSET`` a_max inside the band, where
+        band (the excess: the predicted miss times the joints' own inertia ``M_eff,ss``, an estimate).
+        ``MJX_CORRECTION_PASSES`` corrections, each from the last solve's rows, aimed ``MJX_CORRECTION_INSET`` a_max inside the band, where
         ``robot.coupled`` (a floating or planar base: its feet's contact rows change with the torque), else one
         (a fixed base: Brax ``pusher``'s strikes are saturations a second pass does not fix, 18 -> 16 violating
         steps of 3 200, at +40 % of its step at batch 256: under ``vmap`` every member pays every pass).
