@@ -126,7 +126,8 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None,
     """Shared formula (``xp`` = ``jnp`` or ``numpy``); see the module docstring. ``dtau`` ``(n,)`` [N m]: a
     torque added to the one realising ``a`` (the contact correction; where the actuators lack it, that is a
     saturation, counted with the torque they lacked). ``tau`` ``(n,)`` [N m]: the joint torque to apply,
-    given (the boxed contact correction), in place of the one realising ``a``."""
+    given (the boxed contact correction), in place of the one realising ``a`` (``M_eff``, ``f_other``, ``a`` then
+    unread)."""
     dofs, other, gear, gain, bias, c_rng, f_rng = robot_arrays
     if tau is None:
         M_s, f_s = joint_dynamics(xp, M_eff, f_other, dofs, other, coupled)
@@ -142,6 +143,27 @@ def _invert(xp, robot_arrays, M_eff, f_other, a, q, v, coupled: bool, dtau=None,
     # saturated = a clamp is active (exact comparisons: the roundoff of gain * ctrl is not a saturation)
     saturated = (ctrl != ctrl_needed) | (force != force_free)
     excess = xp.where(saturated, xp.abs(gear * (force_needed - force)), 0.0)
+    return ctrl, excess, saturated
+
+
+def torque_headroom(xp, robot_arrays, q, v, actuator_force):
+    """``(applied, box)``: the shielded actuators' joint torque in a solved substep ``(n,)`` [N m or N]
+    (``shielded_torque``) and ``box = (lo, hi)``, the torque change they can still add at ``(q, v)``
+    (``robot.torque_range`` less ``applied``): the boxed contact correction's box."""
+    applied = shielded_torque(xp, robot_arrays, actuator_force)
+    lo, hi = torque_range(xp, robot_arrays, q, v)
+    return applied, (lo - applied, hi - applied)
+
+
+def _boxed_inversion(xp, robot_arrays, M_eff, q, v, applied, fix):
+    """``(ctrl, torque_excess, saturated)`` realising the boxed correction ``fix`` (a ``Correction``) on top of
+    ``applied`` (``torque_headroom``): a torque inside the box asks no more than the actuators have, so it saturates
+    only where no torque in the box meets the band, lacking (counted at the joints' own inertia ``M_eff,ss``, an
+    estimate) what the predicted miss would take."""
+    dofs = robot_arrays[0]
+    ctrl = _invert(xp, robot_arrays, M_eff, None, None, q, v, False, tau=applied + fix.dtau)[0]
+    saturated = fix.miss != 0
+    excess = xp.where(saturated, xp.abs(sub_block(M_eff, dofs, dofs) @ fix.miss), 0.0)
     return ctrl, excess, saturated
 
 
@@ -392,19 +414,15 @@ class MjxActuation:
         Returns ``(d, inversion, out)``: ``out`` the excess of the uncorrected realised acceleration over
         the band [rad/s^2] (``(n,)``, zeros without correction). Corrected, the inversion realises the boxed
         correction's torque, and ``saturated`` / ``torque_excess`` say where no torque the actuators have meets the
-        band (the excess: the predicted miss times the joints' own inertia ``M_eff,ss``, an estimate).
-        ``MJX_CORRECTION_PASSES`` corrections, each from the last solve's rows, aimed ``MJX_CORRECTION_INSET`` a_max inside the band, where
-        ``robot.coupled`` (a floating or planar base: its feet's contact rows change with the torque), else one
+        band (``_boxed_inversion``). ``MJX_CORRECTION_PASSES`` corrections, each from the last solve's rows, aimed
+        ``MJX_CORRECTION_INSET`` a_max inside the band, where ``robot.coupled`` (a floating or planar base: its feet's contact rows change with the torque), else one
         (a fixed base: Brax ``pusher``'s strikes are saturations a second pass does not fix, 18 -> 16 violating
         steps of 3 200, at +40 % of its step at batch 256: under ``vmap`` every member pays every pass).
         """
         dofs = self._arrays[0]
         q, v = d.qpos[self.robot.qpos_adr], d.qvel[dofs]
 
-        def invert(dtau=None, tau=None):
-            return Inversion(*_invert(jnp, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau, tau))
-
-        inv = invert()
+        inv = Inversion(*_invert(jnp, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled))
         dc = self._constraint_stage(d, inv.ctrl)
         out = jnp.zeros_like(a)
         # contacts (a static size) or other rows that reach the shielded trees (other_rows_on_trees): the shield
@@ -412,26 +430,16 @@ class MjxActuation:
         if band is not None and (d._impl.ncon or self._other_rows) and self._integrate is not mjx.rungekutta4:
             # passes: a correction that makes or breaks a contact row is corrected again from the new rows
             M = mjx_stages.full_m(self.sys, dc)
-            t_lo, t_hi = torque_range(jnp, self._arrays, q, v)
             inset = jnp.asarray(self._inset, a.dtype)
             for k in range(self._passes):
                 impl = dc._impl
                 D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
                 qfrc = dc.qfrc_smooth + dc.qfrc_constraint
-                # the box: the torque the actuators can add to what they applied in this solve
-                applied = shielded_torque(jnp, self._arrays, dc.actuator_force[self._act])
-                fix = contact_correction(
-                    jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band, (t_lo - applied, t_hi - applied), inset
-                )
+                applied, box = torque_headroom(jnp, self._arrays, q, v, dc.actuator_force[self._act])
+                fix = contact_correction(jnp, dofs, M, M_eff, impl.efc_J, D_active, qfrc, band, box, inset)
                 if k == 0:  # the push as the shield's ctrl met it (the metric); later passes correct its residual
                     out = fix.out
-                # a correction inside the box asks no more than the actuators have: it saturates only where no torque
-                # in the box meets the band, lacking (counted at the joints' own inertia) what the miss would take
-                missed = fix.miss != 0
-                lacked = jnp.abs(sub_block(M_eff, dofs, dofs) @ fix.miss)
-                inv = invert(tau=applied + fix.dtau)._replace(
-                    torque_excess=jnp.where(missed, lacked, 0.0), saturated=missed
-                )
+                inv = Inversion(*_boxed_inversion(jnp, self._arrays, M_eff, q, v, applied, fix))
                 # warm-started at the predicted answer: the solver's loop (run until a batch's slowest member is
                 # done) then stops after an iteration or two
                 dc = self._constraint_stage(d.replace(qacc_warmstart=dc.qacc + fix.dqacc), inv.ctrl)
@@ -550,10 +558,8 @@ class CActuation:
                     break
                 J, D_active = (rows[1], rows[2]) if k == 0 else (self._efc_jacobian(d), self._efc_d_active(d))
                 box = None
-                if not self._rk4:  # the box: the torque the actuators can add to what they applied (MJX's rule)
-                    applied = shielded_torque(np, self._arrays, d.actuator_force[self._act])
-                    t_lo, t_hi = torque_range(np, self._arrays, q, v)
-                    box = (t_lo - applied, t_hi - applied)
+                if not self._rk4:  # boxed, as MJX's (RK4's retakes build on the unboxed dtau)
+                    applied, box = torque_headroom(np, self._arrays, q, v, d.actuator_force[self._act])
                 fix = contact_correction(np, self._dofs, rows[0], M_eff, J, D_active, qfrc, band, box)
                 if k == 0:  # the push as the shield's ctrl met it (the metric); later passes correct its residual
                     out = fix.out
@@ -561,10 +567,8 @@ class CActuation:
                 if box is None:
                     dtau = dtau + fix.dtau
                     ctrl, excess, sat = _invert(np, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled, dtau)
-                else:  # as MJX's: saturated where no torque in the box meets the band
-                    ctrl = _invert(np, self._arrays, M_eff, f_other, a, q, v, False, tau=applied + fix.dtau)[0]
-                    sat = fix.miss != 0
-                    excess = np.where(sat, np.abs(sub_block(M_eff, self._dofs, self._dofs) @ fix.miss), 0.0)
+                else:
+                    ctrl, excess, sat = _boxed_inversion(np, self._arrays, M_eff, q, v, applied, fix)
                 d.ctrl[self._act] = ctrl
             if not self._rk4 and best[1] is not ctrl:  # a correction made it worse: the best torque evaluated
                 _, ctrl, excess, sat = best  # (dtau is read after this only by RK4)

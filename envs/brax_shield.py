@@ -53,9 +53,9 @@ servo that cannot hold back gravity braking harder than ``a_max`` [rad/s^2]), ``
 correction [rad/s^2]). The guarantee is exact for the model's own dynamics. A contact's force depends on
 the acceleration: where one would push the realised acceleration out of the bounds, the actuators are
 given the least torque change, within what they have left, that holds it inside the bounds under the
-contact's own response (``MjxActuation.finish_substep``, ``correct_contacts=True``); where they lack that torque (a hard impact,
-e.g. Brax ``pusher``'s hand striking its table), the contact pushes the joint on: a saturation and, maybe,
-a violation, both counted. A trajectory no contact touched never violates (measured).
+contact's own response (``MjxActuation.finish_substep``, ``correct_contacts=True``); where they lack that
+torque (a hard impact, e.g. Brax ``pusher``'s hand striking its table), the contact pushes the joint on: a
+saturation and, maybe, a violation, both counted. A trajectory no contact touched never violates (measured).
 """
 
 from __future__ import annotations

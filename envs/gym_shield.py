@@ -42,8 +42,8 @@ out; ``info["shield"]["constrained"]`` says whether a constraint force acted on 
 substep. Where one would push a substep's realised acceleration out of the bounds, the substep is
 corrected (``correct_contacts=True``, ``CActuation.finish_substep``: the constraint problem solved once
 with the shield's ctrl, then the actuators given the least torque change, within what they have left, that
-holds the acceleration inside the bounds under the contact's own response; ``info["shield"]["contact_corrected"]`` how far it would have
-left them). Where the actuators lack that torque (Gymnasium's Pusher striking its table), the contact
+holds the acceleration inside the bounds under the contact's own response; ``info["shield"]["contact_corrected"]``
+how far it would have left them). Where the actuators lack that torque (Gymnasium's Pusher striking its table), the contact
 pushes the joint on: a saturation and, maybe, a violation, both counted (``tests/test_gym_shield.py``
 measures it). Euler and
 implicitfast realise ``a_safe`` exactly (to float64 roundoff) without constraint forces and

@@ -28,13 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def fresh(n: int, struck=None, xp=jnp) -> dict:
-    """An armed record for ``n`` joints (no strike measured yet); ``struck``: whether the episode struck before."""
+def fresh(n: int, xp=jnp) -> dict:
+    """An armed record for ``n`` joints (no strike measured yet); ``struck`` (whether the episode struck before) 0:
+    ``start_step`` keeps it across re-arms."""
     f32 = np.float32
     zero = xp.zeros((), f32)
     zn = xp.zeros((n,), f32)
     return {
-        "struck": zero if struck is None else xp.asarray(struck, f32),
+        "struck": zero,
         "hit": zero,  # 1 once the window opened
         "off": xp.ones((), f32),  # 1: the last control step had no substep in contact
         "k": zero,  # substeps in the window so far

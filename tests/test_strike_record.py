@@ -18,8 +18,7 @@ H = 0.002
 def _run(substeps, window_substeps=10, stop_fraction=0.1, record=None, first_step=False):
     """One control step over ``substeps``: a list of ``(in_contact, w_pre, w_post, force)``."""
     kept = strike_record.fresh(N) if record is None else record
-    fresh = strike_record.fresh(N, jnp.where(first_step, 0.0, kept["struck"]))
-    start = strike_record.start_step(kept, fresh, jnp.asarray(first_step))
+    start = strike_record.start_step(kept, strike_record.fresh(N), jnp.asarray(first_step))
     rec = start
     for touch, w_pre, w_post, force in substeps:
         rec, _ = strike_record.advance(
