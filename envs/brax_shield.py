@@ -96,7 +96,8 @@ SHIELD_METRICS = VIOLATIONS + (
 # with an impact cap (``impact=``): the cap [m/s], 0/1 where no command inside the bounds and the torques met it,
 # the impact point's largest approach speed along the normal over the step's substeps [m/s], and 0/1 whether the cap
 # applied (``ImpactPoint.surface``: only near it); and the point's strikes, measured (``envs/strike_record.py``): 1.0 in
-# the step a strike's window closes, and its impulsive joint torque over ``tau_imp_max`` and approach speed [m/s] then
+# the step a strike's window closes, and its impulsive joint torque over ``tau_imp_max`` and approach speed [m/s] then,
+# and 1.0 then if the cap was unmet in the step the strike began in or the one before (outside the cap's claim)
 IMPACT_METRICS = (
     "impact_cap",
     "impact_infeasible",
@@ -105,6 +106,7 @@ IMPACT_METRICS = (
     "strike",
     "strike_ratio",
     "strike_speed",
+    "strike_cap_unmet",
 )
 # fields a Brax env may have changed on its System after loading (read back into the MjModel copy)
 _SYNCED_FIELDS = (
@@ -234,7 +236,8 @@ class JointLimitShield(Wrapper):
         strikes are measured at every substep (``envs/strike_record.py``, the record in ``info["shield_strike"]``):
         ``info["violation"]["impact"]`` (a strike's measured impulsive joint torque over ``tau_imp_max``, less 1, in
         the step its window closes) and metrics ``shield/strike`` (1.0 then), ``shield/strike_ratio``,
-        ``shield/strike_speed`` (its approach speed [m/s]). In a strike (its first substep and its open window) an
+        ``shield/strike_speed`` (its approach speed [m/s]), ``shield/strike_cap_unmet`` (1.0 then if the enforced cap
+        was unmet in the step the strike began in or the one before: outside the cap's claim). In a strike (its first substep and its open window) an
         enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding the
         acceleration in the bounds would push the point on into the surface (measured: a block dropped at the cap
         struck at 1.45 times its bound with the correction on, ``tests/test_strike_record.py``).
@@ -351,7 +354,10 @@ class JointLimitShield(Wrapper):
                 )
             return self.decide(d.qpos[qadr], d.qvel[dofs], a_des, a_prev, torque, terms), a_des
 
-        def record(d_before, d_after, inv, out, a, strike, touch):
+        def cap_unmet(dec):  # this step's impact cap could not be met (a measured-only point has no cap)
+            return SafeAcceleration.impact_unmet(dec) & self.impact.enforce
+
+        def record(d_before, d_after, inv, out, a, strike, touch, dec):
             v0, v1 = d_before.qvel[dofs], d_after.qvel[dofs]
             viol = self.decide.violations(d_after.qpos[qadr], v1)
             inside = self.decide.violations(d_before.qpos[qadr], v0)["position"] <= 0
@@ -372,6 +378,7 @@ class JointLimitShield(Wrapper):
                     h,
                     imp.window_substeps,
                     imp.stop_fraction,
+                    cap_unmet=cap_unmet(dec),
                 )
             return strike, {
                 **extra,
@@ -405,7 +412,7 @@ class JointLimitShield(Wrapper):
                     in_strike = strike_record.in_strike(strike, touch)
                     band = tuple(jnp.where(in_strike, jnp.inf * side, b) for side, b in zip((-1.0, 1.0), band))
             dn, inv, out = act.finish_substep(ds, Ms, fs, a, band)
-            strike, rec = record(ds, dn, inv, out, a, strike, touch)
+            strike, rec = record(ds, dn, inv, out, a, strike, touch, dec)
             return (dn, dec, a_des, strike), rec
 
         dtype = pipeline_state.qvel.dtype
@@ -436,9 +443,10 @@ class JointLimitShield(Wrapper):
             rec["impact_infeasible"] = SafeAcceleration.impact_unmet(dec)
             imp = self.impact
             strike, figures = strike_record.finish(
-                strike0, strike_end, rec.pop("striking"), imp.dt_impact, imp.tau_imp_max
+                strike0, strike_end, rec.pop("striking"), imp.dt_impact, imp.tau_imp_max, cap_unmet=cap_unmet(dec)
             )
             rec.update(strike=figures["strike"], strike_ratio=figures["ratio"], strike_speed=figures["speed"])
+            rec["strike_cap_unmet"] = figures["cap_unmet"]
             rec["impact"] = figures["excess"]
         self._outputs = (rec, dec, a_des, strike)
         return _brax_state(self._base.sys, d_end)

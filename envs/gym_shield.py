@@ -174,8 +174,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         ``ImpactPoint.surface`` given, only near it); and its strikes, measured at every substep
         (``envs/strike_record.py``): ``info["violation"]["impact"]`` (a strike's measured impulsive joint torque over
         ``tau_imp_max``, less 1, in the step its window closes), ``info["shield"]`` ``strike`` (1.0 then),
-        ``strike_ratio`` and ``strike_speed`` (its approach speed [m/s]). In a strike (its first substep and its open
-        window) an enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding
+        ``strike_ratio``, ``strike_speed`` (its approach speed [m/s]) and ``strike_cap_unmet`` (1.0 then if the
+        enforced cap was unmet in the step the strike began in or the one before: outside the cap's claim). In a
+        strike (its first substep and its open window) an enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding
         the acceleration in the bounds would push the point on into the surface.
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
 
@@ -393,6 +394,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         out = np.asarray(out)
         a_prev, self.a_prev = self.a_prev, out[:n]  # a fresh host array per call
         a_safe = out[:n].astype(np.float64)
+        # this step's impact cap could not be met (the strike record's; a measured-only point has no cap)
+        cap_unmet = imp is not None and imp.enforce and bool(out[4 * n + 3] > 0.5)
         lower, upper = out[n : 2 * n].astype(np.float64), out[2 * n : 3 * n].astype(np.float64)
         # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
         band = None if not self.correct_contacts else (np.minimum(lower, a_safe), np.maximum(upper, a_safe))
@@ -433,6 +436,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                     imp.window_substeps,
                     imp.stop_fraction,
                     np,
+                    cap_unmet=cap_unmet,
                 )
             if out_k is not None:
                 out_k = np.abs(out_k)
@@ -480,7 +484,9 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
             self._records[-1]["jerk"] = float(decide.jerk_excess(self.a_prev, a_prev, np))
         if imp is not None:
             cap, infeasible, active = float(out[4 * n + 2]), bool(out[4 * n + 3] > 0.5), bool(out[4 * n + 4] > 0.5)
-            self._strike, fig = strike_record.finish(strike0, strike, touched, imp.dt_impact, imp.tau_imp_max, np)
+            self._strike, fig = strike_record.finish(
+                strike0, strike, touched, imp.dt_impact, imp.tau_imp_max, np, cap_unmet=cap_unmet
+            )
             self._records[-1].update(
                 impact_cap=cap,
                 impact_infeasible=infeasible,
@@ -490,6 +496,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 strike=float(fig["strike"]),
                 strike_ratio=float(fig["ratio"]),
                 strike_speed=float(fig["speed"]),
+                strike_cap_unmet=float(fig["cap_unmet"]),
             )
 
     def _rows_joint_force(self, m, d, rows) -> np.ndarray:
@@ -602,6 +609,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                 rec["strike"] += r["strike"]
                 rec["strike_ratio"] = max(rec["strike_ratio"], r["strike_ratio"])
                 rec["strike_speed"] = max(rec["strike_speed"], r["strike_speed"])
+                rec["strike_cap_unmet"] = max(rec["strike_cap_unmet"], r["strike_cap_unmet"])
                 rec["impact_cap"] = min(rec["impact_cap"], r["impact_cap"])
                 rec["impact_speed"] = max(rec["impact_speed"], r["impact_speed"])
                 rec["impact_infeasible"] = rec["impact_infeasible"] or r["impact_infeasible"]

@@ -338,7 +338,9 @@ class SafetyWrapper(Wrapper):
 
     def finish(self, state: State, a_des, a_safe, b, extra=None) -> State:
         """Step the env with ``a_safe`` and record the shield's metrics (shared by ``step`` and rollouts)."""
-        nstate = self.env.step_acc(state, a_safe, self.band(b, a_safe))
+        # the strike record of an env with contacts tells the strikes whose approach the cap could not bound
+        cap_unmet = (extra or {}).get("impact_infeasible", jnp.zeros((), jnp.float32)) > 0
+        nstate = self.env.step_acc(state, a_safe, self.band(b, a_safe), cap_unmet)
         metrics = dict(nstate.metrics)
         # a replaced non-finite command counts in nonfinite_action, not as an (infinite) intervention
         metrics["intervention"] = jnp.max(jnp.where(jnp.isfinite(a_des), jnp.abs(a_safe - a_des), 0.0), axis=-1)

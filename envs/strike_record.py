@@ -16,6 +16,14 @@ dt_impact / tau_imp_max_j`` (the measured impulsive torque over its bound; > 1 i
 control step (``off``), so that every strike is measured, re-strikes after a bounce or a pull-back too, and it starts
 afresh at every episode's first step. ``struck`` (kept across re-arms) says whether the episode struck at all.
 
+The impact cap's claim covers a strike only where the cap could be met: the approach speed at the first contact is
+set by the control step it falls in and the one before (a constant acceleration over each; a shield's joint-limit
+bounds win over the cap, which is then met with least violation and flagged). A caller with a cap passes each step's
+``cap_unmet`` (``advance``, ``finish``); the record keeps the previous step's (``unmet_prev``, kept across re-arms
+like ``struck``), stores at the window's first substep whether either step's cap was unmet (``unmet``) and gives it
+with the strike (``finish``'s ``cap_unmet``): a strike over its bound there is the documented outcome of an unmet cap,
+counted apart from the claim's violations.
+
 The record is a flat dict of float32 arrays (a pytree: it lives in a Brax ``State.info``). Every function takes the
 array module ``xp`` (``jax.numpy``, the default, or ``numpy``). Used by ``WallStrike`` (which adds its own fields), by
 ``JointLimitShield(impact=ImpactPoint(...))`` and by ``JointLimitShieldWrapper(impact=...)`` (numpy, C MuJoCo), whose
@@ -44,16 +52,20 @@ def fresh(n: int, xp=jnp) -> dict:
         "q_pre": zn,
         "v_pre": zn,
         "impulse": zn,  # contact joint impulse over the window [N m s]
+        "unmet": zero,  # 1: the cap was unmet in the step the window opened in or the one before
+        "unmet_prev": zero,  # 1: the last control step's cap was unmet (kept across re-arms)
     }
 
 
 def start_step(kept: dict, fresh_record: dict, first_step, xp=jnp) -> dict:
     """The record a control step starts from: ``fresh_record`` (``fresh``'s fields and those a caller adds) at an
     episode's first step (``first_step``, a bool ``()``) or once ``kept``'s strike has closed and a whole step passed
-    off contact, else ``kept``; ``struck`` is 0 at an episode's first step, else ``kept``'s (kept across re-arms)."""
+    off contact, else ``kept``; ``struck`` and ``unmet_prev`` are 0 at an episode's first step, else ``kept``'s (kept
+    across re-arms)."""
     new = first_step | ((kept["hit"] > 0) & (kept["open"] == 0) & (kept["off"] > 0))
     record = {k: xp.where(new, fresh_record[k], kept[k]) for k in fresh_record}
-    record["struck"] = xp.where(first_step, 0.0, kept["struck"]).astype(np.float32)
+    for k in ("struck", "unmet_prev"):
+        record[k] = xp.where(first_step, 0.0, kept[k]).astype(np.float32)
     return record
 
 
@@ -65,14 +77,26 @@ def in_strike(record: dict, in_contact):
 
 
 def advance(
-    rec: dict, in_contact, w_pre, w_post, q, v, joint_force, h, window_substeps: int, stop_fraction: float, xp=jnp
+    rec: dict,
+    in_contact,
+    w_pre,
+    w_post,
+    q,
+    v,
+    joint_force,
+    h,
+    window_substeps: int,
+    stop_fraction: float,
+    xp=jnp,
+    cap_unmet=False,
 ):
     """``(rec, in_window)``: the record after one substep.
 
     in_contact: ``()`` bool, the striking geometry touches in this substep. w_pre, w_post: ``()`` the point's
     approach speed [m/s] before and after the substep. q, v: ``(n,)`` joint position and velocity before it.
-    joint_force: ``(n,)`` the contact's joint force in it [N m]. h: the substep [s]. ``in_window``: ``()`` bool,
-    this substep was inside the window (callers accumulate their own fields over it)."""
+    joint_force: ``(n,)`` the contact's joint force in it [N m]. h: the substep [s]. cap_unmet: ``()`` bool, this
+    control step's impact cap could not be met (False without a cap). ``in_window``: ``()`` bool, this substep was
+    inside the window (callers accumulate their own fields over it)."""
     f32 = np.float32
     first = (rec["hit"] == 0) & in_contact
     hit = xp.where(in_contact, 1.0, rec["hit"]).astype(f32)
@@ -89,6 +113,7 @@ def advance(
         w=w_hit,
         q_pre=xp.where(first, q, rec["q_pre"]).astype(f32),
         v_pre=xp.where(first, v, rec["v_pre"]).astype(f32),
+        unmet=xp.where(first, xp.maximum(rec["unmet_prev"], xp.asarray(cap_unmet, f32)), rec["unmet"]).astype(f32),
         impulse=(rec["impulse"] + xp.where(in_window, joint_force * h, 0.0)).astype(f32),
     )
     return new, in_window
@@ -99,20 +124,22 @@ def impulsive_ratio(impulse, dt_impact: float, tau_imp_max, xp=jnp):
     return xp.max(xp.abs(impulse) / np.float32(dt_impact) / xp.asarray(tau_imp_max, np.float32))
 
 
-def finish(start: dict, end: dict, contact_in_step, dt_impact: float, tau_imp_max, xp=jnp):
+def finish(start: dict, end: dict, contact_in_step, dt_impact: float, tau_imp_max, xp=jnp, cap_unmet=False):
     """``(record, strike)`` at a control step's end: ``record`` with ``off`` set (``contact_in_step``: any substep of
-    the step in contact) and ``strike`` ``{"strike": 1.0 in the step the window closed, "ratio": its impulsive
-    ratio then (else 0), "excess": max(ratio - 1, 0) then, "speed": its approach speed w then [m/s]}`` (float32
-    ``()`` each)."""
+    the step in contact) and ``unmet_prev`` (``cap_unmet``: this step's cap could not be met) and ``strike``
+    ``{"strike": 1.0 in the step the window closed, "ratio": its impulsive ratio then (else 0), "excess": max(ratio -
+    1, 0) then, "speed": its approach speed w then [m/s], "cap_unmet": 1.0 then if the cap was unmet in the step the
+    window opened in or the one before}`` (float32 ``()`` each)."""
     f32 = np.float32
     closed = (start["open"] > 0) & (end["open"] == 0)
     ratio = xp.where(closed, impulsive_ratio(end["impulse"], dt_impact, tau_imp_max, xp), 0.0).astype(f32)
-    record = dict(end, off=(1.0 - xp.asarray(contact_in_step, f32)))
+    record = dict(end, off=(1.0 - xp.asarray(contact_in_step, f32)), unmet_prev=xp.asarray(cap_unmet, f32))
     strike = {
         "strike": xp.asarray(closed, f32),
         "ratio": ratio,
         "excess": xp.maximum(ratio - f32(1.0), f32(0.0)),
         "speed": xp.where(closed, end["w"], 0.0).astype(f32),
+        "cap_unmet": xp.where(closed, end["unmet"], 0.0).astype(f32),
     }
     return record, strike
 

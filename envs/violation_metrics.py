@@ -7,9 +7,9 @@ not measure, is 0, so are ``jerk`` where the robot has no ``j_max`` and ``impact
 ``intervention``, ``viable``,
 ``nonfinite_action``, ``torque_box_conflict``, ``disturbance`` from the shield's ``shield/intervention``,
 ``shield/nonviable``, ``shield/nonfinite``, ``shield/torque_conflict``, ``shield/disturbance``; with an impact point (``JointLimitShield(
-impact=)``) ``impact_cap``, ``impact_infeasible``, ``strike`` and ``strike_ratio`` (``SafetyWrapper``'s and
-``WallStrike``'s names) from ``shield/impact_cap``, ``shield/impact_infeasible``, ``shield/strike`` and
-``shield/strike_ratio``. Nothing else changes.
+impact=)``) ``impact_cap``, ``impact_infeasible``, ``strike``, ``strike_ratio`` (``SafetyWrapper``'s and
+``WallStrike``'s names) and ``strike_cap_unmet`` from ``shield/impact_cap``, ``shield/impact_infeasible``,
+``shield/strike``, ``shield/strike_ratio`` and ``shield/strike_cap_unmet``. Nothing else changes.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def _with_metrics(state: State) -> State:
     for name, source in _RENAMED.items():
         metrics[name] = jnp.asarray(state.metrics[source], jnp.float32)
     metrics["viable"] = 1.0 - jnp.asarray(state.metrics["shield/nonviable"], jnp.float32)
-    for name in ("impact_cap", "impact_infeasible", "strike", "strike_ratio"):
+    for name in ("impact_cap", "impact_infeasible", "strike", "strike_ratio", "strike_cap_unmet"):
         if f"shield/{name}" in state.metrics:
             metrics[name] = jnp.asarray(state.metrics[f"shield/{name}"], jnp.float32)
     return state.replace(metrics=metrics)

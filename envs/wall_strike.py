@@ -28,7 +28,8 @@ tau_imp_max_j`` (the measured impulsive torque over its bound; the rigid model's
 dt_impact`` is the same quantity), ``impact/tau_contact`` (the same with the contact impulse alone),
 ``impact/v_post`` = ``max_j max_{t >= impact} |qvel_j| / v_max_j``; a ratio > 1 is a violation.
 Each strike is counted once, in the step its window closes: ``strike`` (1.0 then), ``strike_ratio``
-(its ``impact/tau_contact``), and the violation metrics ``count/impact`` / ``violation/impact`` (the
+(its ``impact/tau_contact``), ``strike_cap_unmet`` (1.0 then if the shield's cap was unmet in the step the strike
+began in or the one before: ``step_acc``'s ``cap_unmet``, outside the cap's claim), and the violation metrics ``count/impact`` / ``violation/impact`` (the
 ratio's excess over 1), which ``training/tally.py`` and the evaluator count like every limit. The
 record restarts at every episode's first step (``time == 0``: also after Brax's auto-reset, which
 restores the reset's physics state but not ``info``), and re-arms within an episode once a strike's
@@ -279,6 +280,7 @@ class WallStrike(ArmReach):
                 "strike": zero,
                 "success": zero,
                 "strike_ratio": zero,
+                "strike_cap_unmet": zero,
             }
         )
         n = self.n
@@ -320,7 +322,7 @@ class WallStrike(ArmReach):
         return M, self.ee_jacobian(q), jnp.asarray(self.normal, jnp.float32)
 
     # ---- physics with contacts ----------------------------------------------------------------
-    def _substep_contact(self, carry, a, band=None):
+    def _substep_contact(self, carry, a, band=None, cap_unmet=False):
         d, imp = carry
         M, h, d = self.inverse_dynamics(d)  # fwd_position (collisions at this state) + fwd_velocity
         tau = M @ a + h
@@ -362,6 +364,7 @@ class WallStrike(ArmReach):
             self.h,
             self.window_substeps,
             self.stop_fraction,
+            cap_unmet=cap_unmet,
         )
         new.update(
             momentum=imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),
@@ -376,11 +379,13 @@ class WallStrike(ArmReach):
         return mjx_stages.fwd_acceleration(self.sys, mjx_stages.fwd_actuation(self.sys, d.replace(ctrl=tau)))
 
     @_mjx_tracing
-    def step_acc(self, state: State, a: jax.Array, band=None) -> State:
+    def step_acc(self, state: State, a: jax.Array, band=None, cap_unmet=False) -> State:
         """One control step of ``frame_skip`` substeps with joint acceleration ``a`` held; contacts on.
 
         ``band = (lower, upper)`` ``(n,)`` each [rad/s^2] (the shield's bounds): the contact correction keeps
-        every substep's realised acceleration inside it where the motors can (see ``_substep_contact``)."""
+        every substep's realised acceleration inside it where the motors can (see ``_substep_contact``).
+        ``cap_unmet``: ``()`` bool, the shield's impact cap could not be met in this step (``strike_record``: a
+        strike that begins in it or the next is outside the cap's claim, metric ``strike_cap_unmet``)."""
         a = self._f32(a)
         d0 = state.pipeline_state
         # an episode's first step (d0.time == 0: reset() or Brax's AutoResetWrapper, which restores the reset's
@@ -392,7 +397,7 @@ class WallStrike(ArmReach):
         first_step = d0.time == 0
         imp0 = strike_record.start_step(kept, self._fresh_impact(d0), first_step)
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
-            lambda c, _: self._substep_contact(c, a, band), (d0, imp0), None, length=self.frame_skip
+            lambda c, _: self._substep_contact(c, a, band, cap_unmet), (d0, imp0), None, length=self.frame_skip
         )
         step_imp = jnp.sum(frcs, axis=0)
         d = mjx_stages.fwd_position(self.sys, d)
@@ -409,7 +414,7 @@ class WallStrike(ArmReach):
         metrics["contact"] = in_contact
         metrics["disturbance"] = in_contact  # the evaluator's name: a contact acted on the arm in this step
         spec = self.impact
-        imp, strike = strike_record.finish(imp0, imp, in_contact, spec.dt_impact, spec.tau_imp_max)
+        imp, strike = strike_record.finish(imp0, imp, in_contact, spec.dt_impact, spec.tau_imp_max, cap_unmet=cap_unmet)
         metrics["impact/hit"] = imp["hit"]
         metrics["impact/w"] = imp["w"]
         metrics["impact/tau"] = strike_record.impulsive_ratio(imp["momentum"], spec.dt_impact, spec.tau_imp_max)
@@ -422,6 +427,7 @@ class WallStrike(ArmReach):
         metrics["count/impact"] = (strike["excess"] > 0).astype(jnp.float32)
         metrics["strike"] = strike["strike"]
         metrics["strike_ratio"] = strike["ratio"]  # measured / bound, once a strike
+        metrics["strike_cap_unmet"] = strike["cap_unmet"]  # its approach under an unmet cap: outside its claim
         metrics["success"] = imp["struck"]  # the task: strike the wall (the evaluator's success)
         # normal impulse delivered this step [N s]: the wall's impulse on the ball from the joint impulse,
         # J^T p = sum(qfrc_constraint) h, solved in the least-squares sense (regularised)
@@ -532,7 +538,7 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
             band = None
             if all(b is not None for b in bands):
                 band = tuple(jnp.stack([b[i] for b in bands])[s_id] for i in range(2))
-            ns = env.step_acc(state, a_safe, band)
+            ns = env.step_acc(state, a_safe, band, infe > 0)
             return ns, caps, infe
 
         def body(carry, _):

@@ -63,6 +63,24 @@ def test_every_row_ran_its_steps(planar_rows):
         assert campaign.claim_violations(m) == sum(campaign.claim_violations(r) for r in group)
 
 
+def test_strikes_over_the_bound_break_the_claim_only_where_the_cap_bounded_their_approach(planar_rows):
+    """The impact cap's claim: its strikes over the bound count as broken unless the cap was unmet in the strike's
+    step or the one before (``impact/cap_unmet``, counted apart and shown in the table); rows written before that
+    count every strike over the bound. The joint limits count in the steps no contact disturbed."""
+    (r,) = [r for r in planar_rows if r["shield"] == "viability" and r["policy"] == "toward_limit"]
+    r = dict(r, claimed=["position", "impact"], **{"position/undisturbed": 3, "impact/count": 7})
+    assert campaign.claim_violations(dict(r, **{"impact/cap_unmet": 0})) == 10
+    assert campaign.claim_violations(dict(r, **{"impact/cap_unmet": 5})) == 5
+    assert campaign.claim_violations(dict(r, **{"impact/cap_unmet": 7})) == 3
+    old = {k: v for k, v in r.items() if k != "impact/cap_unmet"}
+    assert campaign.claim_violations(old) == 10
+    table = campaign.format_table([dict(r, **{"impact/cap_unmet": 5}), old])
+    head, _, with_count, without = table.splitlines()
+    column = head.split(" | ").index("strikes over the bound, cap unmet")
+    assert with_count.split(" | ")[column] == "5" and without.split(" | ")[column] == "–"
+    assert with_count.split(" | ")[column - 5] == "**5**"  # claim broken: 3 + 7 - 5
+
+
 def test_shielded_rows_violate_nothing_they_guarantee(planar_rows):
     assert campaign.shielded_violations(planar_rows) == 0
     for r in planar_rows:

@@ -23,7 +23,7 @@ ROW_KEYS = {"target", "shield", "policy", "env_steps", "claimed", "measured"} | 
     f"{k}/{x}" for k in VIOLATION_KEYS for x in ("count", "worst", "undisturbed")
 }
 ROW_KEYS |= {"nonviable", "conflicts", "disturbed_steps", "impact_infeasible", "nan_substituted", "strikes"}
-ROW_KEYS |= {"wall_s", "compile_s", "env_steps_per_s"}
+ROW_KEYS |= {"wall_s", "compile_s", "env_steps_per_s", "impact/cap_unmet"}
 
 
 @pytest.fixture(scope="module")

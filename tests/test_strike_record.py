@@ -15,26 +15,32 @@ N = 2
 H = 0.002
 
 
-def _run(substeps, window_substeps=10, stop_fraction=0.1, record=None, first_step=False):
-    """One control step over ``substeps``: a list of ``(in_contact, w_pre, w_post, force)``."""
-    kept = strike_record.fresh(N) if record is None else record
-    start = strike_record.start_step(kept, strike_record.fresh(N), jnp.asarray(first_step))
+def _run(substeps, window_substeps=10, stop_fraction=0.1, record=None, first_step=False, cap_unmet=False, xp=jnp):
+    """One control step over ``substeps``: a list of ``(in_contact, w_pre, w_post, force)``; ``cap_unmet``: the
+    step's impact cap could not be met; ``xp``: the array module the record is computed with."""
+    f32 = np.float32
+    kept = strike_record.fresh(N, xp) if record is None else record
+    start = strike_record.start_step(kept, strike_record.fresh(N, xp), xp.asarray(first_step), xp)
     rec = start
     for touch, w_pre, w_post, force in substeps:
         rec, _ = strike_record.advance(
             rec,
-            jnp.asarray(touch),
-            jnp.float32(w_pre),
-            jnp.float32(w_post),
-            jnp.full((N,), 0.5, jnp.float32),
-            jnp.full((N,), -w_pre, jnp.float32),
-            jnp.asarray(force, jnp.float32),
+            xp.asarray(touch),
+            f32(w_pre),
+            f32(w_post),
+            xp.full((N,), 0.5, f32),
+            xp.full((N,), -w_pre, f32),
+            xp.asarray(force, f32),
             H,
             window_substeps,
             stop_fraction,
+            xp,
+            cap_unmet=xp.asarray(cap_unmet),
         )
     touched = any(s[0] for s in substeps)
-    return strike_record.finish(start, rec, touched, dt_impact=0.005, tau_imp_max=np.array([10.0, 20.0]))
+    return strike_record.finish(
+        start, rec, touched, dt_impact=0.005, tau_imp_max=np.array([10.0, 20.0]), xp=xp, cap_unmet=xp.asarray(cap_unmet)
+    )
 
 
 def test_a_strike_is_its_impulse_over_the_compression_and_is_counted_once():
@@ -70,6 +76,40 @@ def test_the_window_is_capped_and_an_episodes_first_step_starts_afresh():
     # an episode's first step: the record restarts, struck included, whatever it held
     rec, s = _run([(False, 0.0, 0.0, [0.0, 0.0])], record=rec, first_step=True)
     assert float(rec["struck"]) == 0.0 and float(rec["hit"]) == 0.0 and float(s["strike"]) == 0.0
+
+
+@pytest.mark.parametrize("xp", [jnp, np], ids=["jax", "numpy"])
+def test_a_strike_after_an_unmet_cap_is_flagged_outside_the_caps_claim(xp):
+    """The cap's claim covers a strike whose approach it bounded: a strike that began in a step whose cap was unmet,
+    or in the step after one, is flagged (``cap_unmet``), one that began two steps after is not; the previous step's
+    flag survives a re-arm and an episode's first step clears it. Both array modules (the Gymnasium wrapper's numpy)."""
+    free = (False, 0.0, 0.0, [0.0, 0.0])
+    hit = [(True, 1.0, 0.05, [30.0, 0.0])]  # a strike opened and closed in one substep
+    # the cap unmet in the step of the strike
+    rec, s = _run(hit, cap_unmet=True, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 1.0
+    # unmet in the step before, met in the strike's
+    rec, _ = _run([free], cap_unmet=True, xp=xp)
+    assert float(rec["unmet_prev"]) == 1.0
+    rec, s = _run(hit, record=rec, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 1.0 and float(rec["unmet_prev"]) == 0.0
+    # unmet two steps before: the cap bounded this approach
+    rec, _ = _run([free], cap_unmet=True, xp=xp)
+    rec, _ = _run([free], record=rec, xp=xp)
+    rec, s = _run(hit, record=rec, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 0.0
+    # met throughout: never flagged; a step without a closing strike reports 0 whatever its cap
+    rec, s = _run(hit, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 0.0
+    rec, s = _run([free], record=rec, cap_unmet=True, xp=xp)
+    assert float(s["strike"]) == 0.0 and float(s["cap_unmet"]) == 0.0
+    # the record re-arms (a closed strike, a step off contact): the unmet step before still counts
+    rec, s = _run(hit, record=rec, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 1.0
+    # an episode's first step forgets the last episode's unmet cap
+    rec, _ = _run([free], record=rec, cap_unmet=True, xp=xp)
+    rec, s = _run(hit, record=rec, first_step=True, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 0.0
 
 
 # ---- on the one shield: a 1 kg block on a vertical slide, dropped onto a floor --------------------------------------
@@ -110,7 +150,8 @@ def _shield(mode: str) -> dict:
 
 def _block_mjx(path: pathlib.Path, mode: str, steps: int, batch: int):
     """``JointLimitShield`` over ``Reach(action="acceleration")``: every block at full acceleration toward the floor.
-    Returns ``(steps, batch)`` arrays: strike, its ratio, the impact excess, its speed, position/velocity excess."""
+    Returns ``(steps, batch)`` arrays: strike, its ratio, the impact excess, its speed, position/velocity excess,
+    the strike's cap unmet."""
     from jaxlimits.envs import JointLimitShield
     from jaxlimits.envs.reach import Reach
 
@@ -127,6 +168,7 @@ def _block_mjx(path: pathlib.Path, mode: str, steps: int, batch: int):
             return s, (m["shield/strike"], m["shield/strike_ratio"], v["impact"], m["shield/strike_speed"]) + (
                 v["position"],
                 v["velocity"],
+                m["shield/strike_cap_unmet"],
             )
 
         return jax.lax.scan(body, state, None, length=steps)[1]
@@ -143,7 +185,7 @@ def _block_c(path: pathlib.Path, mode: str, steps: int, batch: int):
     block = SmallMujocoEnv(path, reset_qpos=lambda rng: rng.uniform(-0.32, 0.32, 1))
     env = JointLimitShieldWrapper(block, **_shield(mode))
     assert "impact" in env.violations
-    out = np.zeros((6, steps, batch), np.float32)
+    out = np.zeros((7, steps, batch), np.float32)
     for b in range(batch):
         env.reset(seed=b)
         for t in range(steps):
@@ -156,6 +198,7 @@ def _block_c(path: pathlib.Path, mode: str, steps: int, batch: int):
                 sh["strike_speed"],
                 v["position"],
                 v["velocity"],
+                sh["strike_cap_unmet"],
             )
     assert env.tally["strikes"] == out[0].sum() and env.tally["impact_violations"] == np.sum(out[2] > 0)
     return list(out)
@@ -172,7 +215,7 @@ def test_a_block_dropped_on_a_floor_strikes_as_the_rigid_model_says(tmp_path, en
     path = tmp_path / "block.xml"
     path.write_text(BLOCK)
     run = _block_mjx if engine == "mjx" else _block_c
-    strike, ratio, excess, w, pos, vel = run(path, mode, steps=100, batch=16)
+    strike, ratio, excess, w, pos, vel, cap_unmet = run(path, mode, steps=100, batch=16)
     bound = 30.0 * 0.005  # tau_imp_max dt_impact [N s]: the largest impulse the cap allows
     struck = strike > 0
     assert np.all(struck.sum(axis=0) >= 1), "every block strikes its floor"
@@ -188,6 +231,8 @@ def test_a_block_dropped_on_a_floor_strikes_as_the_rigid_model_says(tmp_path, en
     assert np.all(excess[~struck] == 0)
     if mode != "unshielded":
         assert np.max(pos) <= 0 and np.max(vel) <= 0
+    # the cap met before every strike (capped: each strike inside the cap's claim); no enforced cap, nothing flagged
+    assert np.all(cap_unmet == 0)
     if enforce:  # the cap holds the block to bound / (1.2 m): every strike within its bound, counted as none
         assert np.all(struck.sum(axis=0) == 1), "a strike at the cap does not bounce off"
         assert np.max(ratio) <= 1.0 and np.all(excess == 0)

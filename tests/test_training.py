@@ -118,6 +118,27 @@ def test_the_planar_arm_trains_under_the_one_shield_through_its_config():
     assert cli.main_reach_config(argparse.Namespace(**{**flags, "config": "tiny"})) == config.load("tiny")
 
 
+def test_the_unshielded_contact_task_measures_its_strikes():
+    """``planar_robot_wall`` under ``shield="none"``: its strikes measured against the cap's bound, the cap not
+    enforced (as the campaign's none rows), so a trained run's unshielded rows count them; capped with ``impact``."""
+    from jaxlimits.envs import JointLimitShield
+    from jaxlimits.training.brax_ppo import env_from_config
+
+    cfg = config.load("planar_robot_wall_ppo")
+
+    def shield_of(cfg):
+        env = env_from_config(cfg)
+        while not isinstance(env, JointLimitShield):
+            env = env.env
+        return env
+
+    assert cfg.impact
+    capped, unshielded = shield_of(cfg), shield_of(cfg.override(shield="none", impact=False))
+    assert capped.impact.enforce and "impact" in capped.violations
+    assert unshielded.method == "none" and not unshielded.impact.enforce and "impact" in unshielded.violations
+    assert shield_of(cfg.override(impact=False)).impact is None  # a shield without the cap: none
+
+
 def test_apg_config_selects_the_shield_gradient():
     from jaxlimits.envs import SafetyWrapper
     from jaxlimits.training.brax_ppo import env_from_config

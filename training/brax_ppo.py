@@ -86,7 +86,7 @@ def make_env(
 def _robot_env(name: str, shield: str, action_mode: str, impact: bool = False, **kwargs):
     """``ViolationMetrics(JointLimitShield(Reach(action=action_mode, **kwargs), method=shield))`` for a
     ``ROBOT_ENVS`` name: the any-robot shield around the any-robot task (``Reach``; ``planar_robot_wall``: ``Strike``,
-    with ``impact`` its impact cap, ``strike_point``), its record under the metric names the trainers and the
+    with ``impact`` its impact cap, ``strike_point``, and under ``"none"`` its strikes measured), its record under the metric names the trainers and the
     evaluator read (``jaxlimits.envs.violation_metrics``). ``"velocity"`` (the planar arm): ``VelocityActions`` over
     the shield of the task's ``action="acceleration"``, as over ``SafetyWrapper``."""
     from jaxlimits.envs import JointLimitShield
@@ -94,6 +94,7 @@ def _robot_env(name: str, shield: str, action_mode: str, impact: bool = False, *
     from jaxlimits.envs.reach import make_planar_robot_reach, make_servo_panda_front_reach
     from jaxlimits.envs.strike import make_planar_robot_wall, strike_point
     from jaxlimits.envs.violation_metrics import ViolationMetrics
+    from jaxlimits.training.campaign_rows import shield_impact
 
     makers = {
         "servo_panda_front_reach": make_servo_panda_front_reach,
@@ -106,7 +107,11 @@ def _robot_env(name: str, shield: str, action_mode: str, impact: bool = False, *
     task = makers[name](action=reach_action, **kwargs)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # the torque-derived a_max's quantile notice
-        shielded = JointLimitShield(task, method=shield, impact=strike_point(task) if impact else None)
+        # the cap where the config asks for it; unshielded, a contact task's strikes measured (not capped), as the
+        # campaign's none rows: an unshielded run's evaluation counts them too
+        point = strike_point(task) if name in CONTACT_ENVS else None
+        point = shield_impact(shield + ("+impact" if impact else ""), point)
+        shielded = JointLimitShield(task, method=shield, impact=point)
     return ViolationMetrics(with_action_mode(shielded, action_mode) if action_mode == "velocity" else shielded)
 
 

@@ -12,7 +12,9 @@ projection met it with least violation, ``SafetyWrapper``'s ``impact_infeasible`
 the braking action, strikes, wall time and env-steps/s, and
 ``claim broken``: the violations of the limits the shield guarantees in steps no contact had pushed the arm
 (the guarantee's scope: a contact the motors cannot hold pushes a joint on, counted in the limit's column and
-as contact-disturbed steps) plus the strikes over the impulsive-torque bound (the impact cap's claim). The
+as contact-disturbed steps) plus the strikes over the impulsive-torque bound whose approach the cap bounded (the
+impact cap's claim; a strike that began in or right after a step whose cap could not be met is outside it, counted
+in ``strikes over the bound, cap unmet``: ``envs/strike_record.py``). The
 ``none`` shield runs the same policies through the same code unshielded: its counts show that the policies
 do reach the limits (a campaign whose unshielded rows were clean would prove nothing); where the target has an
 impact point its strikes are measured there too (the point measured only, ``campaign_rows.shield_impact``).
@@ -93,6 +95,7 @@ class EvaluatorMetrics(Wrapper):
         if "shield/impact_infeasible" in m:  # an impact point's cap (JointLimitShield(impact=)) and its strikes
             m["impact_infeasible"] = m["shield/impact_infeasible"]
             m["strike"], m["strike_ratio"] = m["shield/strike"], m["shield/strike_ratio"]
+            m["strike_cap_unmet"] = m["shield/strike_cap_unmet"]
         m.setdefault("distance", zero)
         return state.replace(metrics=m)
 
@@ -388,10 +391,12 @@ def _cell(count: int, worst: float, claimed: bool) -> str:
 def format_table(rows) -> str:
     """A Markdown table: per row the violating env-steps (worst excess) per limit, bold where the shield guarantees
     the limit, italic where it does not, ``n/m`` where the env does not measure it; ``claim broken``
-    (``claim_violations``), and the other counts."""
+    (``claim_violations``), and the other counts (``strikes over the bound, cap unmet``: the impact column's strikes
+    outside the cap's claim)."""
     head = (
         "| target | shield | policy | env-steps | position | velocity | acceleration | jerk | torque | impact "
-        "| claim broken | contact-disturbed steps | non-viable | conflicts | cap infeasible | NaN substituted "
+        "| claim broken | contact-disturbed steps | non-viable | conflicts | cap infeasible "
+        "| strikes over the bound, cap unmet | NaN substituted "
         "| strikes | wall s | env-steps/s |"
     )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -405,6 +410,7 @@ def format_table(rows) -> str:
             f"{r['nonviable']:,}",
             f"{r['conflicts']:,}",
             f"{r['impact_infeasible']:,}" if "impact_infeasible" in r else "–",
+            f"{r['impact/cap_unmet']:,}" if "impact/cap_unmet" in r else "–",
         ]
         cells += [f"{r['nan_substituted']:,}", f"{r['strikes']:,}"]
         cells += [f"{r['wall_s']:.1f}", f"{r['env_steps_per_s']:,.0f}"]
@@ -435,8 +441,18 @@ def claim_violations(row) -> int:
     """Violating env-steps of ``row`` that break its shield's claim: the limits it guarantees (``campaign_rows.guaranteed``),
     counted in the steps no contact had pushed the arm since the episode began (the joint-limit guarantee's
     scope: a contact the motors cannot hold pushes a joint on, counted apart), and every strike over the
-    impulsive-torque bound (the impact cap's claim, which is about contacts)."""
-    return sum(row[f"{k}/count" if k == "impact" else f"{k}/undisturbed"] for k in row["claimed"])
+    impulsive-torque bound (the impact cap's claim, which is about contacts) whose approach the cap bounded: not
+    those where the cap was unmet in the strike's step or the one before (``impact/cap_unmet``, counted apart: the
+    joint limits win over the cap, which is then met with least violation)."""
+    return sum(_claimed_count(row, k) for k in row["claimed"])
+
+
+def _claimed_count(row, k: str) -> int:
+    """``row``'s violating env-steps of limit ``k`` inside its claim's scope (``claim_violations``)."""
+    if k != "impact":
+        return row[f"{k}/undisturbed"]
+    # rows written before the strikes under an unmet cap were counted apart have no impact/cap_unmet
+    return row["impact/count"] - row.get("impact/cap_unmet", 0)
 
 
 def shielded_violations(rows) -> int:

@@ -141,7 +141,7 @@ class GymTarget:
                 count = dict.fromkeys(VIOLATION_KEYS, 0)
                 worst = dict.fromkeys(VIOLATION_KEYS, 0.0)
                 undisturbed = dict.fromkeys(VIOLATION_KEYS, 0)
-                nonviable = conflicts = nonfinite = disturbed_steps = impact_infeasible = strikes = 0
+                nonviable = conflicts = nonfinite = disturbed_steps = impact_infeasible = strikes = cap_unmet = 0
                 done = episode = 0
                 t0 = time.perf_counter()
                 while done < steps:
@@ -165,6 +165,7 @@ class GymTarget:
                         nonfinite += bool(s["nonfinite"])
                         impact_infeasible += bool(s.get("impact_infeasible", False))
                         strikes += int(s.get("strike", 0))
+                        cap_unmet += bool(v.get("impact", 0.0) > 0.0 and s.get("strike_cap_unmet", 0) > 0)
                         if terminated or truncated:
                             break
                     episode += 1
@@ -173,6 +174,7 @@ class GymTarget:
                 counts.update(disturbed_steps=disturbed_steps, impact_infeasible=impact_infeasible)
                 counts["nonfinite_actions"] = nonfinite
                 counts["strikes"] = strikes
+                counts["cap_unmet_violations/impact"] = cap_unmet
                 for k in VIOLATION_KEYS:
                     counts[f"violations/{k}"] = count[k]
                     counts[f"max_violation/{k}"] = worst[k]

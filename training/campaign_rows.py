@@ -38,7 +38,7 @@ def make_row(target, shield: str, policy: str, s: dict, wall: float, compile_s: 
     """One campaign row of (``target``, ``shield``, ``policy``) from the counts ``s``, keyed as
     ``evaluate.summarize``'s row (``env_steps``, ``violations/<k>``, ``max_violation/<k>``,
     ``undisturbed_violations/<k>``, ``nonviable``, ``conflicts``, ``disturbed_steps``, ``impact_infeasible``,
-    ``nonfinite_actions``, ``strikes``); ``wall`` and ``compile_s`` [s]. Every target's ``rows`` builds its rows
+    ``cap_unmet_violations/impact``, ``nonfinite_actions``, ``strikes``); ``wall`` and ``compile_s`` [s]. Every target's ``rows`` builds its rows
     here, so ``format_table``, ``by_shield`` and ``claim_violations`` see one layout."""
     row = {"target": target.name, "shield": shield, "policy": policy, "env_steps": s["env_steps"]}
     row.update(claimed=list(guaranteed(shield, target)), measured=list(target.measured))
@@ -51,6 +51,8 @@ def make_row(target, shield: str, policy: str, s: dict, wall: float, compile_s: 
         conflicts=s["conflicts"],
         disturbed_steps=s["disturbed_steps"],
         impact_infeasible=s["impact_infeasible"],
+        # strikes over the bound whose approach the cap could not bound (outside its claim, counted apart)
+        **{"impact/cap_unmet": s["cap_unmet_violations/impact"]},
         nan_substituted=s["nonfinite_actions"],
         strikes=s["strikes"],
         wall_s=round(wall, 2),

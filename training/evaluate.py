@@ -136,6 +136,9 @@ def _observe_summaries(prev, state):
         "nonviable": prev["nonviable"] + (1.0 - m.get("viable", 1.0)),
         "conflicts": prev["conflicts"] + m.get("torque_box_conflict", 0.0),
         "impact_infeasible": prev["impact_infeasible"] + (m.get("impact_infeasible", 0.0) > 0),
+        # strikes over their bound whose approach the cap could not bound (unmet in the strike's step or the one
+        # before: strike_record), outside the cap's claim
+        "cap_unmet_impact": prev["cap_unmet_impact"] + m["count/impact"] * (m.get("strike_cap_unmet", 0.0) > 0),
     }
     # from the first step a contact pushed the arm (metric "disturbance" > 0) to the episode's end the
     # trajectory is disturbed: the joint-limit guarantee covers the undisturbed steps (an impact's own
@@ -148,7 +151,7 @@ def _observe_summaries(prev, state):
 
 
 _SUMMARY_KEYS = ("return", "intervention", "nonfinite_actions", "strikes", "max_strike_ratio", "nonviable")
-_SUMMARY_KEYS += ("conflicts", "impact_infeasible", "disturbed_steps")
+_SUMMARY_KEYS += ("conflicts", "impact_infeasible", "cap_unmet_impact", "disturbed_steps")
 _SUMMARY_KEYS += tuple(f"{p}{k}" for p in ("undisturbed/count/", "count/", "max/") for k in VIOLATION_KEYS)
 
 
@@ -280,6 +283,7 @@ def summarize(per_episode: dict, episode_length: int, success_radius: float = SU
         "nonviable": int(np.sum(per_episode["nonviable"], dtype=np.float64)),
         "conflicts": int(np.sum(per_episode["conflicts"], dtype=np.float64)),
         "impact_infeasible": int(np.sum(per_episode["impact_infeasible"], dtype=np.float64)),
+        "cap_unmet_violations/impact": int(np.sum(per_episode["cap_unmet_impact"], dtype=np.float64)),
         "disturbed_steps": int(np.sum(per_episode["disturbed_steps"], dtype=np.float64)),
     }
     for k in VIOLATION_KEYS:
