@@ -394,8 +394,10 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         out = np.asarray(out)
         a_prev, self.a_prev = self.a_prev, out[:n]  # a fresh host array per call
         a_safe = out[:n].astype(np.float64)
-        # this step's impact cap could not be met (the strike record's; a measured-only point has no cap)
-        cap_unmet = imp is not None and imp.enforce and bool(out[4 * n + 3] > 0.5)
+        # no command inside the bounds and torques met the impact cap; the strike record's flag where it is enforced
+        # (a measured-only point has no cap to be unmet)
+        infeasible = imp is not None and bool(out[4 * n + 3] > 0.5)
+        cap_unmet = infeasible and imp.enforce
         lower, upper = out[n : 2 * n].astype(np.float64), out[2 * n : 3 * n].astype(np.float64)
         # every substep's realised acceleration is kept inside the decision's bounds (a contact corrected)
         band = None if not self.correct_contacts else (np.minimum(lower, a_safe), np.maximum(upper, a_safe))
@@ -483,7 +485,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         if "jerk" in self.violations:
             self._records[-1]["jerk"] = float(decide.jerk_excess(self.a_prev, a_prev, np))
         if imp is not None:
-            cap, infeasible, active = float(out[4 * n + 2]), bool(out[4 * n + 3] > 0.5), bool(out[4 * n + 4] > 0.5)
+            cap, active = float(out[4 * n + 2]), bool(out[4 * n + 4] > 0.5)
             self._strike, fig = strike_record.finish(
                 strike0, strike, touched, imp.dt_impact, imp.tau_imp_max, np, cap_unmet=cap_unmet
             )
