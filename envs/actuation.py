@@ -425,6 +425,7 @@ class MjxActuation:
         inv = Inversion(*_invert(jnp, self._arrays, M_eff, f_other, a, q, v, self.robot.coupled))
         dc = self._constraint_stage(d, inv.ctrl)
         out = jnp.zeros_like(a)
+        first = inv
         # contacts (a static size) or other rows that reach the shielded trees (other_rows_on_trees): the shield
         # keeps its joints off their own limits' rows, and a model without either pays nothing
         if band is not None and (d._impl.ncon or self._other_rows) and self._integrate is not mjx.rungekutta4:
@@ -443,6 +444,16 @@ class MjxActuation:
                 # warm-started at the predicted answer: the solver's loop (run until a batch's slowest member is
                 # done) then stops after an iteration or two
                 dc = self._constraint_stage(d.replace(qacc_warmstart=dc.qacc + fix.dqacc), inv.ctrl)
+            # where the realised acceleration lay inside the band (no correction needed: the boxed torque change is
+            # nil), the actuators' clamps are the first inversion's, as C MuJoCo reports them (CActuation); the
+            # boxed inversion's miss, relative to the band, would hide a clamp that the band happens to contain
+            # (the decided acceleration not realised: a torque-blind decision, an impact cap's row)
+            needed = jnp.any(out != 0)
+            inv = Inversion(
+                inv.ctrl,
+                jnp.where(needed, inv.torque_excess, first.torque_excess),
+                jnp.where(needed, inv.saturated, first.saturated),
+            )
         return self._integrate(self.sys, dc), inv, out
 
 

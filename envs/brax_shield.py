@@ -237,7 +237,8 @@ class JointLimitShield(Wrapper):
         ``info["violation"]["impact"]`` (a strike's measured impulsive joint torque over ``tau_imp_max``, less 1, in
         the step its window closes) and metrics ``shield/strike`` (1.0 then), ``shield/strike_ratio``,
         ``shield/strike_speed`` (its approach speed [m/s]), ``shield/strike_cap_unmet`` (1.0 then if the enforced cap
-        was unmet in the step the strike began in or the one before: outside the cap's claim). In a strike (its first substep and its open window) an
+        was not delivered in the step the strike began in, before its contact, or the one before: unmet, or an
+        actuator saturated; outside the cap's claim). In a strike (its first substep and its open window) an
         enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding the
         acceleration in the bounds would push the point on into the surface (measured: a block dropped at the cap
         struck at 1.45 times its bound with the correction on, ``tests/test_strike_record.py``).
@@ -379,6 +380,7 @@ class JointLimitShield(Wrapper):
                     imp.window_substeps,
                     imp.stop_fraction,
                     cap_unmet=cap_unmet(dec),
+                    saturated=jnp.any(inv.saturated) & imp.enforce,  # the cap decided, not realised
                 )
             return strike, {
                 **extra,

@@ -175,7 +175,8 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
         (``envs/strike_record.py``): ``info["violation"]["impact"]`` (a strike's measured impulsive joint torque over
         ``tau_imp_max``, less 1, in the step its window closes), ``info["shield"]`` ``strike`` (1.0 then),
         ``strike_ratio``, ``strike_speed`` (its approach speed [m/s]) and ``strike_cap_unmet`` (1.0 then if the
-        enforced cap was unmet in the step the strike began in or the one before: outside the cap's claim). In a
+        enforced cap was not delivered in the step the strike began in, before its contact, or the one before: unmet,
+        or an actuator saturated; outside the cap's claim). In a
         strike (its first substep and its open window) an enforced cap turns the contact correction off: the velocity jump is the cap's to bound, and holding
         the acceleration in the bounds would push the point on into the surface.
       robot_kwargs: passed to ``Robot.from_model`` (``torque_margin``, ``torque_samples``, ...).
@@ -439,6 +440,7 @@ class JointLimitShieldWrapper(gymnasium.Wrapper, gymnasium.utils.RecordConstruct
                     imp.stop_fraction,
                     np,
                     cap_unmet=cap_unmet,
+                    saturated=bool(inv.saturated.any()) and imp.enforce,  # the cap decided, not realised
                 )
             if out_k is not None:
                 out_k = np.abs(out_k)

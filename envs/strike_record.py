@@ -16,12 +16,16 @@ dt_impact / tau_imp_max_j`` (the measured impulsive torque over its bound; > 1 i
 control step (``off``), so that every strike is measured, re-strikes after a bounce or a pull-back too, and it starts
 afresh at every episode's first step. ``struck`` (kept across re-arms) says whether the episode struck at all.
 
-The impact cap's claim covers a strike only where the cap could be met: the approach speed at the first contact is
-set by the control step it falls in and the one before (a constant acceleration over each; a shield's joint-limit
-bounds win over the cap, which is then met with least violation and flagged). A caller with a cap passes each step's
-``cap_unmet`` (``advance``, ``finish``); the record keeps the previous step's (``unmet_prev``, kept across re-arms
-like ``struck``), stores at the window's first substep whether either step's cap was unmet (``unmet``) and gives it
-with the strike (``finish``'s ``cap_unmet``): a strike over its bound there is the documented outcome of an unmet cap,
+The impact cap's claim covers a strike only where the cap was delivered: the approach speed at the first contact is
+set by the control step it falls in and the one before (a constant acceleration over each). The cap is not delivered
+where the shield could not meet it (its joint-limit bounds win over the cap, which is then met with least violation
+and flagged: a caller with a cap passes each step's ``cap_unmet`` to ``advance`` and ``finish``) or where the
+actuators could not realise the decided acceleration (a substep whose actuators saturated: ``advance``'s
+``saturated``; the realised approach is then not the one the cap bounded). The record keeps whether the current step
+saturated before the current substep (``sat_step``, cleared by ``finish``) and whether the previous step did not
+deliver its cap (``unmet_prev``, kept across re-arms like ``struck``), stores at the window's first substep whether
+the cap was not delivered in that step (before the first contact) or the one before (``unmet``) and gives it with the
+strike (``finish``'s ``cap_unmet``): a strike over its bound there is the documented outcome of an undelivered cap,
 counted apart from the claim's violations.
 
 The record is a flat dict of float32 arrays (a pytree: it lives in a Brax ``State.info``). Every function takes the
@@ -52,8 +56,9 @@ def fresh(n: int, xp=jnp) -> dict:
         "q_pre": zn,
         "v_pre": zn,
         "impulse": zn,  # contact joint impulse over the window [N m s]
-        "unmet": zero,  # 1: the cap was unmet in the step the window opened in or the one before
-        "unmet_prev": zero,  # 1: the last control step's cap was unmet (kept across re-arms)
+        "unmet": zero,  # 1: the cap was not delivered in the step the window opened in or the one before
+        "unmet_prev": zero,  # 1: the last control step's cap was not delivered (kept across re-arms)
+        "sat_step": zero,  # 1: an actuator saturated in this control step before the current substep
     }
 
 
@@ -89,13 +94,16 @@ def advance(
     stop_fraction: float,
     xp=jnp,
     cap_unmet=False,
+    saturated=False,
 ):
     """``(rec, in_window)``: the record after one substep.
 
     in_contact: ``()`` bool, the striking geometry touches in this substep. w_pre, w_post: ``()`` the point's
     approach speed [m/s] before and after the substep. q, v: ``(n,)`` joint position and velocity before it.
     joint_force: ``(n,)`` the contact's joint force in it [N m]. h: the substep [s]. cap_unmet: ``()`` bool, this
-    control step's impact cap could not be met (False without a cap). ``in_window``: ``()`` bool, this substep was
+    control step's impact cap could not be met (False without a cap). saturated: ``()`` bool, an actuator saturated
+    in this substep (its realised acceleration is not the decided one; it counts for strikes from the next substep
+    on, this substep's own approach speed ``w_pre`` being set before it). ``in_window``: ``()`` bool, this substep was
     inside the window (callers accumulate their own fields over it)."""
     f32 = np.float32
     first = (rec["hit"] == 0) & in_contact
@@ -104,6 +112,7 @@ def advance(
     stopped = (hit > 0) & (w_post <= stop_fraction * w_hit)
     in_window = (hit > 0) & (rec["open"] > 0)
     closes = in_window & (stopped | (rec["k"] + 1 >= window_substeps))
+    undelivered = xp.maximum(xp.maximum(rec["unmet_prev"], rec["sat_step"]), xp.asarray(cap_unmet, f32))
     new = dict(rec)
     new.update(
         struck=xp.maximum(rec["struck"], hit),
@@ -113,7 +122,8 @@ def advance(
         w=w_hit,
         q_pre=xp.where(first, q, rec["q_pre"]).astype(f32),
         v_pre=xp.where(first, v, rec["v_pre"]).astype(f32),
-        unmet=xp.where(first, xp.maximum(rec["unmet_prev"], xp.asarray(cap_unmet, f32)), rec["unmet"]).astype(f32),
+        unmet=xp.where(first, undelivered, rec["unmet"]).astype(f32),
+        sat_step=xp.maximum(rec["sat_step"], xp.asarray(saturated, f32)),
         impulse=(rec["impulse"] + xp.where(in_window, joint_force * h, 0.0)).astype(f32),
     )
     return new, in_window
@@ -126,14 +136,18 @@ def impulsive_ratio(impulse, dt_impact: float, tau_imp_max, xp=jnp):
 
 def finish(start: dict, end: dict, contact_in_step, dt_impact: float, tau_imp_max, xp=jnp, cap_unmet=False):
     """``(record, strike)`` at a control step's end: ``record`` with ``off`` set (``contact_in_step``: any substep of
-    the step in contact) and ``unmet_prev`` (``cap_unmet``: this step's cap could not be met) and ``strike``
+    the step in contact), ``unmet_prev`` (this step's cap not delivered: ``cap_unmet``, it could not be met, or an
+    actuator saturated in one of the step's substeps) and ``sat_step`` cleared, and ``strike``
     ``{"strike": 1.0 in the step the window closed, "ratio": its impulsive ratio then (else 0), "excess": max(ratio -
-    1, 0) then, "speed": its approach speed w then [m/s], "cap_unmet": 1.0 then if the cap was unmet in the step the
-    window opened in or the one before}`` (float32 ``()`` each)."""
+    1, 0) then, "speed": its approach speed w then [m/s], "cap_unmet": 1.0 then if the cap was not delivered in the step
+    the window opened in or the one before}`` (float32 ``()`` each)."""
     f32 = np.float32
     closed = (start["open"] > 0) & (end["open"] == 0)
     ratio = xp.where(closed, impulsive_ratio(end["impulse"], dt_impact, tau_imp_max, xp), 0.0).astype(f32)
-    record = dict(end, off=(1.0 - xp.asarray(contact_in_step, f32)), unmet_prev=xp.asarray(cap_unmet, f32))
+    undelivered = xp.maximum(xp.asarray(cap_unmet, f32), end["sat_step"])
+    record = dict(
+        end, off=(1.0 - xp.asarray(contact_in_step, f32)), unmet_prev=undelivered, sat_step=end["sat_step"] * 0
+    )
     strike = {
         "strike": xp.asarray(closed, f32),
         "ratio": ratio,

@@ -28,8 +28,9 @@ tau_imp_max_j`` (the measured impulsive torque over its bound; the rigid model's
 dt_impact`` is the same quantity), ``impact/tau_contact`` (the same with the contact impulse alone),
 ``impact/v_post`` = ``max_j max_{t >= impact} |qvel_j| / v_max_j``; a ratio > 1 is a violation.
 Each strike is counted once, in the step its window closes: ``strike`` (1.0 then), ``strike_ratio``
-(its ``impact/tau_contact``), ``strike_cap_unmet`` (1.0 then if the shield's cap was unmet in the step the strike
-began in or the one before: ``step_acc``'s ``cap_unmet``, outside the cap's claim), and the violation metrics ``count/impact`` / ``violation/impact`` (the
+(its ``impact/tau_contact``), ``strike_cap_unmet`` (1.0 then if the shield's cap was not delivered in the step
+the strike began in, before its contact, or the one before: ``step_acc``'s ``cap_unmet``, or a substep's motors
+saturated; outside the cap's claim), and the violation metrics ``count/impact`` / ``violation/impact`` (the
 ratio's excess over 1), which ``training/tally.py`` and the evaluator count like every limit. The
 record restarts at every episode's first step (``time == 0``: also after Brax's auto-reset, which
 restores the reset's physics state but not ``info``), and re-arms within an episode once a strike's
@@ -329,6 +330,8 @@ class WallStrike(ArmReach):
         in_contact = jnp.any(d._impl.contact.dist < 0.0)
         d_free = d
         d = _solve(self.sys, self._actuate(d_free, tau))
+        tau_max = self._f32(self.tau_max)
+        miss = jnp.zeros((), bool)
         if band is not None:
             # the contact correction (envs/actuation.py): where the wall pushes the realised acceleration out of
             # the shield's band, the motors get the torque that brings it back under the contact's response
@@ -337,12 +340,13 @@ class WallStrike(ArmReach):
             impl = d._impl
             D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
             qfrc = d.qfrc_smooth + d.qfrc_constraint
-            tau_max = self._f32(self.tau_max)
             applied = jnp.clip(tau, -tau_max, tau_max)  # what the motors applied in the solve (ctrlrange)
-            dtau, _, dqacc, _ = contact_correction(
+            dtau, _, dqacc, fix_miss = contact_correction(
                 jnp, np.arange(self.n), M, M, impl.efc_J, D_active, qfrc, band, (-tau_max - applied, tau_max - applied)
             )
-            tau = jnp.where(strike_record.in_strike(imp, in_contact), tau, applied + dtau)
+            in_strike = strike_record.in_strike(imp, in_contact)
+            tau = jnp.where(in_strike, tau, applied + dtau)
+            miss = ~in_strike & jnp.any(fix_miss != 0)
             d = _solve(self.sys, self._actuate(d_free.replace(qacc_warmstart=d.qacc + dqacc), tau))
         frc = d.qfrc_constraint
         d_act = d.qfrc_actuator
@@ -365,6 +369,8 @@ class WallStrike(ArmReach):
             self.window_substeps,
             self.stop_fraction,
             cap_unmet=cap_unmet,
+            # the motors could not realise the substep's acceleration: clipped at ctrlrange, or the correction missed
+            saturated=jnp.any(jnp.abs(tau) > tau_max) | miss,
         )
         new.update(
             momentum=imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),

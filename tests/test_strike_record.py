@@ -15,14 +15,17 @@ N = 2
 H = 0.002
 
 
-def _run(substeps, window_substeps=10, stop_fraction=0.1, record=None, first_step=False, cap_unmet=False, xp=jnp):
+def _run(
+    substeps, window_substeps=10, stop_fraction=0.1, record=None, first_step=False, cap_unmet=False, xp=jnp, sat=()
+):
     """One control step over ``substeps``: a list of ``(in_contact, w_pre, w_post, force)``; ``cap_unmet``: the
-    step's impact cap could not be met; ``xp``: the array module the record is computed with."""
+    step's impact cap could not be met; ``sat``: the indices of the substeps whose actuators saturated; ``xp``: the
+    array module the record is computed with."""
     f32 = np.float32
     kept = strike_record.fresh(N, xp) if record is None else record
     start = strike_record.start_step(kept, strike_record.fresh(N, xp), xp.asarray(first_step), xp)
     rec = start
-    for touch, w_pre, w_post, force in substeps:
+    for i, (touch, w_pre, w_post, force) in enumerate(substeps):
         rec, _ = strike_record.advance(
             rec,
             xp.asarray(touch),
@@ -36,6 +39,7 @@ def _run(substeps, window_substeps=10, stop_fraction=0.1, record=None, first_ste
             stop_fraction,
             xp,
             cap_unmet=xp.asarray(cap_unmet),
+            saturated=xp.asarray(i in sat),
         )
     touched = any(s[0] for s in substeps)
     return strike_record.finish(
@@ -112,6 +116,33 @@ def test_a_strike_after_an_unmet_cap_is_flagged_outside_the_caps_claim(xp):
     assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 0.0
 
 
+@pytest.mark.parametrize("xp", [jnp, np], ids=["jax", "numpy"])
+def test_a_strike_after_saturated_actuators_is_flagged_outside_the_caps_claim(xp):
+    """The cap bounds the approach it decided; where the actuators saturated, the realised approach is another one:
+    a strike whose approach speed a saturated substep set (earlier in its step, or in the step before) is flagged
+    like one after an unmet cap; a saturation in the strike's own first substep (its approach speed is set before
+    it) or two steps before is not, and the flag of a saturated step does not outlive the next."""
+    free = (False, 0.0, 0.0, [0.0, 0.0])
+    hit = (True, 1.0, 0.05, [30.0, 0.0])  # a strike opened and closed in one substep
+    # saturated in the substep before the contact, same step
+    rec, s = _run([free, hit], sat=(0,), xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 1.0
+    assert float(rec["unmet_prev"]) == 1.0 and float(rec["sat_step"]) == 0.0  # carried as the step's, then cleared
+    # saturated in the contact's own substep only: not flagged; the step's flag is set for the next
+    rec, s = _run([free, free, free], xp=xp)
+    rec, s = _run([free, hit], sat=(1,), record=rec, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 0.0 and float(rec["unmet_prev"]) == 1.0
+    # saturated in the step before (after its last contact): the next strike is flagged
+    rec, _ = _run([free, free], sat=(1,), xp=xp)
+    rec, s = _run([hit], record=rec, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 1.0
+    # saturated two steps before: the approach was the decided one again
+    rec, _ = _run([free, free], sat=(0,), xp=xp)
+    rec, _ = _run([free, free], record=rec, xp=xp)
+    rec, s = _run([hit], record=rec, xp=xp)
+    assert float(s["strike"]) == 1.0 and float(s["cap_unmet"]) == 0.0
+
+
 # ---- on the one shield: a 1 kg block on a vertical slide, dropped onto a floor --------------------------------------
 BLOCK = """<mujoco>
   <option timestep="0.002" integrator="Euler"/>
@@ -148,14 +179,14 @@ def _shield(mode: str) -> dict:
     return dict(impact=_point(mode == "capped"))
 
 
-def _block_mjx(path: pathlib.Path, mode: str, steps: int, batch: int):
+def _block_mjx(path: pathlib.Path, mode: str, steps: int, batch: int, force: float = 30.0, **shield):
     """``JointLimitShield`` over ``Reach(action="acceleration")``: every block at full acceleration toward the floor.
     Returns ``(steps, batch)`` arrays: strike, its ratio, the impact excess, its speed, position/velocity excess,
-    the strike's cap unmet."""
+    the strike's cap unmet, the step's actuator saturation. ``shield``: more keywords of the shield."""
     from jaxlimits.envs import JointLimitShield
     from jaxlimits.envs.reach import Reach
 
-    env = JointLimitShield(Reach(path, action="acceleration"), **_shield(mode))
+    env = JointLimitShield(Reach(path, action="acceleration"), **_shield(mode), **shield)
     assert "impact" in env.violations
 
     @jax.jit
@@ -169,6 +200,7 @@ def _block_mjx(path: pathlib.Path, mode: str, steps: int, batch: int):
                 v["position"],
                 v["velocity"],
                 m["shield/strike_cap_unmet"],
+                m["shield/saturated"],
             )
 
         return jax.lax.scan(body, state, None, length=steps)[1]
@@ -176,20 +208,20 @@ def _block_mjx(path: pathlib.Path, mode: str, steps: int, batch: int):
     return [np.asarray(x) for x in rollout(jax.random.PRNGKey(0))]
 
 
-def _block_c(path: pathlib.Path, mode: str, steps: int, batch: int):
+def _block_c(path: pathlib.Path, mode: str, steps: int, batch: int, force: float = 30.0, **shield):
     """The same through ``JointLimitShieldWrapper`` (C MuJoCo) over a Gymnasium ``MujocoEnv`` of the block, its ctrl
-    the motor's full force toward the floor, one episode per block (starts uniform as ``Reach``'s)."""
+    the motor's full force ``force`` [N] toward the floor, one episode per block (starts uniform as ``Reach``'s)."""
     from jaxlimits.envs.gym import JointLimitShieldWrapper
     from small_mujoco_env import SmallMujocoEnv
 
     block = SmallMujocoEnv(path, reset_qpos=lambda rng: rng.uniform(-0.32, 0.32, 1))
-    env = JointLimitShieldWrapper(block, **_shield(mode))
+    env = JointLimitShieldWrapper(block, **_shield(mode), **shield)
     assert "impact" in env.violations
-    out = np.zeros((7, steps, batch), np.float32)
+    out = np.zeros((8, steps, batch), np.float32)
     for b in range(batch):
         env.reset(seed=b)
         for t in range(steps):
-            info = env.step(np.array([-30.0]))[-1]
+            info = env.step(np.array([-force]))[-1]
             sh, v = info["shield"], info["violation"]
             out[:, t, b] = (
                 sh["strike"],
@@ -199,6 +231,7 @@ def _block_c(path: pathlib.Path, mode: str, steps: int, batch: int):
                 v["position"],
                 v["velocity"],
                 sh["strike_cap_unmet"],
+                sh["saturated"],
             )
     assert env.tally["strikes"] == out[0].sum() and env.tally["impact_violations"] == np.sum(out[2] > 0)
     return list(out)
@@ -215,7 +248,7 @@ def test_a_block_dropped_on_a_floor_strikes_as_the_rigid_model_says(tmp_path, en
     path = tmp_path / "block.xml"
     path.write_text(BLOCK)
     run = _block_mjx if engine == "mjx" else _block_c
-    strike, ratio, excess, w, pos, vel, cap_unmet = run(path, mode, steps=100, batch=16)
+    strike, ratio, excess, w, pos, vel, cap_unmet, _ = run(path, mode, steps=100, batch=16)
     bound = 30.0 * 0.005  # tau_imp_max dt_impact [N s]: the largest impulse the cap allows
     struck = strike > 0
     assert np.all(struck.sum(axis=0) >= 1), "every block strikes its floor"
@@ -239,3 +272,25 @@ def test_a_block_dropped_on_a_floor_strikes_as_the_rigid_model_says(tmp_path, en
         assert np.max(speed) <= bound / 1.2 * 1.0001
     else:  # only measured: the block arrives fast, the strikes exceed the bound and are counted
         assert np.min(speed) > 0.3 and np.all(excess[first] > 1.0)
+
+
+@pytest.mark.parametrize("engine", ["mjx", "c"])
+def test_a_cap_the_motor_cannot_realise_flags_its_strikes_and_counts_the_saturation(tmp_path, engine):
+    """The block's motor at 12 N (2.2 m/s^2 of braking against gravity) under a torque-blind shield
+    (``torque_limits=False``, its MJCF ``a_max`` 15 m/s^2): the shield decides to brake toward the cap in time, the
+    motor saturates, the block arrives faster than the cap. Every strike over its bound is flagged outside the cap's
+    claim (its approach was set by saturated substeps), and the saturation is counted in those steps, by both engines
+    (MJX used to report the boxed contact correction's miss alone, relative to the bounds, and hid a clamp whose
+    realised acceleration stayed inside them: 1 of 16 such strikes unflagged, no saturation counted)."""
+    path = tmp_path / "block.xml"
+    path.write_text(BLOCK.replace('ctrlrange="-30 30"', 'ctrlrange="-12 12"'))
+    run = _block_mjx if engine == "mjx" else _block_c
+    strike, ratio, excess, w, pos, vel, cap_unmet, saturated = run(
+        path, "capped", steps=100, batch=16, force=12.0, torque_limits=False
+    )
+    over = (strike > 0) & (excess > 0)
+    assert over.sum() >= 8, "the unrealised cap lets the block strike over its bound"
+    assert np.all(cap_unmet[over] == 1.0)
+    # the approach each flagged strike had was set by a saturated step: its own or the one before
+    t, b = np.nonzero(over)
+    assert np.all(np.maximum(saturated[t, b], saturated[np.maximum(t - 1, 0), b]) > 0)

@@ -13,8 +13,9 @@ the braking action, strikes, wall time and env-steps/s, and
 ``claim broken``: the violations of the limits the shield guarantees in steps no contact had pushed the arm
 (the guarantee's scope: a contact the motors cannot hold pushes a joint on, counted in the limit's column and
 as contact-disturbed steps) plus the strikes over the impulsive-torque bound whose approach the cap bounded (the
-impact cap's claim; a strike that began in or right after a step whose cap could not be met is outside it, counted
-in ``strikes over the bound, cap unmet``: ``envs/strike_record.py``). The
+impact cap's claim; a strike that began in or right after a step whose cap was not delivered, because no command
+inside the bounds met it or because the actuators saturated and did not realise the decided approach, is outside it,
+counted in ``strikes over the bound, cap unmet``: ``envs/strike_record.py``). The
 ``none`` shield runs the same policies through the same code unshielded: its counts show that the policies
 do reach the limits (a campaign whose unshielded rows were clean would prove nothing); where the target has an
 impact point its strikes are measured there too (the point measured only, ``campaign_rows.shield_impact``).
