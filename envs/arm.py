@@ -377,12 +377,12 @@ class ArmReach(Env):
         return d, (d.qpos, d.qvel, d.qacc, tau)
 
     @_mjx_tracing
-    def step_acc(self, state: State, a: jax.Array, band=None, cap_unmet=False) -> State:
+    def step_acc(self, state: State, a: jax.Array, band=None, cap_unmet=False, capped=False) -> State:
         """One control step of ``frame_skip`` substeps with joint acceleration ``a`` [rad/s^2] held.
 
-        ``band``: the shield's bounds, and ``cap_unmet``: its impact cap could not be met, for envs with contacts
-        (``WallStrike``); unused here (no contacts: ``a`` is realised exactly)."""
-        del band, cap_unmet
+        ``band``: the shield's bounds, ``cap_unmet``: its impact cap could not be met, and ``capped``: it has one, for
+        envs with contacts (``WallStrike``); unused here (no contacts: ``a`` is realised exactly)."""
+        del band, cap_unmet, capped
         a = self._f32(a)
         d0 = state.pipeline_state
         d, (qs, vs, accs, taus) = jax.lax.scan(lambda dd, _: self._substep(dd, a), d0, None, length=self.frame_skip)

@@ -340,7 +340,7 @@ class SafetyWrapper(Wrapper):
         """Step the env with ``a_safe`` and record the shield's metrics (shared by ``step`` and rollouts)."""
         # the strike record of an env with contacts tells the strikes whose approach the cap could not bound
         cap_unmet = (extra or {}).get("impact_infeasible", jnp.zeros((), jnp.float32)) > 0
-        nstate = self.env.step_acc(state, a_safe, self.band(b, a_safe), cap_unmet)
+        nstate = self.env.step_acc(state, a_safe, self.band(b, a_safe), cap_unmet, capped=bool(self.impact))
         metrics = dict(nstate.metrics)
         # a replaced non-finite command counts in nonfinite_action, not as an (infinite) intervention
         metrics["intervention"] = jnp.max(jnp.where(jnp.isfinite(a_des), jnp.abs(a_safe - a_des), 0.0), axis=-1)

@@ -323,7 +323,7 @@ class WallStrike(ArmReach):
         return M, self.ee_jacobian(q), jnp.asarray(self.normal, jnp.float32)
 
     # ---- physics with contacts ----------------------------------------------------------------
-    def _substep_contact(self, carry, a, band=None, cap_unmet=False):
+    def _substep_contact(self, carry, a, band=None, cap_unmet=False, capped=False):
         d, imp = carry
         M, h, d = self.inverse_dynamics(d)  # fwd_position (collisions at this state) + fwd_velocity
         tau = M @ a + h
@@ -369,8 +369,9 @@ class WallStrike(ArmReach):
             self.window_substeps,
             self.stop_fraction,
             cap_unmet=cap_unmet,
-            # the motors could not realise the substep's acceleration: clipped at ctrlrange, or the correction missed
-            saturated=jnp.any(jnp.abs(tau) > tau_max) | miss,
+            # the motors could not realise the substep's acceleration (clipped at ctrlrange, or the correction
+            # missed): a cap decided but not realised (only where the shield has a cap)
+            saturated=(jnp.any(jnp.abs(tau) > tau_max) | miss) & capped,
         )
         new.update(
             momentum=imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),
@@ -385,13 +386,15 @@ class WallStrike(ArmReach):
         return mjx_stages.fwd_acceleration(self.sys, mjx_stages.fwd_actuation(self.sys, d.replace(ctrl=tau)))
 
     @_mjx_tracing
-    def step_acc(self, state: State, a: jax.Array, band=None, cap_unmet=False) -> State:
+    def step_acc(self, state: State, a: jax.Array, band=None, cap_unmet=False, capped=False) -> State:
         """One control step of ``frame_skip`` substeps with joint acceleration ``a`` held; contacts on.
 
         ``band = (lower, upper)`` ``(n,)`` each [rad/s^2] (the shield's bounds): the contact correction keeps
         every substep's realised acceleration inside it where the motors can (see ``_substep_contact``).
         ``cap_unmet``: ``()`` bool, the shield's impact cap could not be met in this step (``strike_record``: a
-        strike that begins in it or the next is outside the cap's claim, metric ``strike_cap_unmet``)."""
+        strike that begins in it or the next is outside the cap's claim, metric ``strike_cap_unmet``); ``capped``:
+        ``()`` bool, the shield has an impact cap (then a substep whose motors saturated flags the strikes its
+        approach sets too: the cap decided but not realised)."""
         a = self._f32(a)
         d0 = state.pipeline_state
         # an episode's first step (d0.time == 0: reset() or Brax's AutoResetWrapper, which restores the reset's
@@ -403,7 +406,7 @@ class WallStrike(ArmReach):
         first_step = d0.time == 0
         imp0 = strike_record.start_step(kept, self._fresh_impact(d0), first_step)
         (d, imp), (qs, vs, accs, taus, contact, frcs) = jax.lax.scan(
-            lambda c, _: self._substep_contact(c, a, band, cap_unmet), (d0, imp0), None, length=self.frame_skip
+            lambda c, _: self._substep_contact(c, a, band, cap_unmet, capped), (d0, imp0), None, length=self.frame_skip
         )
         step_imp = jnp.sum(frcs, axis=0)
         d = mjx_stages.fwd_position(self.sys, d)
@@ -532,6 +535,7 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
         speeds = jnp.concatenate([speeds] * S)
         sid = jnp.asarray(sid_np)
         a_max = jnp.asarray(env.limits.a_max, jnp.float32)
+        capped = jnp.asarray([bool(w.impact) for w in shields])  # per shield: it has an impact cap
 
         def one(state, s_id, speed):
             a_des = strike_command(env, state, speed)
@@ -544,7 +548,7 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
             band = None
             if all(b is not None for b in bands):
                 band = tuple(jnp.stack([b[i] for b in bands])[s_id] for i in range(2))
-            ns = env.step_acc(state, a_safe, band, infe > 0)
+            ns = env.step_acc(state, a_safe, band, infe > 0, capped[s_id])
             return ns, caps, infe
 
         def body(carry, _):
