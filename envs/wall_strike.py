@@ -331,7 +331,9 @@ class WallStrike(ArmReach):
         d_free = d
         d = _solve(self.sys, self._actuate(d_free, tau))
         tau_max = self._f32(self.tau_max)
-        miss = jnp.zeros((), bool)
+        # the motors cannot apply the torque realising a (clipped at ctrlrange): a saturation unless a contact
+        # correction took over (then its miss says it, as MjxActuation reports it)
+        saturated = jnp.any(jnp.abs(tau) > tau_max)
         if band is not None:
             # the contact correction (envs/actuation.py): where the wall pushes the realised acceleration out of
             # the shield's band, the motors get the torque that brings it back under the contact's response
@@ -341,12 +343,13 @@ class WallStrike(ArmReach):
             D_active = jnp.where(impl.efc_force != 0, impl.efc_D, 0.0)
             qfrc = d.qfrc_smooth + d.qfrc_constraint
             applied = jnp.clip(tau, -tau_max, tau_max)  # what the motors applied in the solve (ctrlrange)
-            dtau, _, dqacc, fix_miss = contact_correction(
+            dtau, out, dqacc, fix_miss = contact_correction(
                 jnp, np.arange(self.n), M, M, impl.efc_J, D_active, qfrc, band, (-tau_max - applied, tau_max - applied)
             )
             in_strike = strike_record.in_strike(imp, in_contact)
+            corrected = ~in_strike & jnp.any(out != 0)
             tau = jnp.where(in_strike, tau, applied + dtau)
-            miss = ~in_strike & jnp.any(fix_miss != 0)
+            saturated = jnp.where(corrected, jnp.any(fix_miss != 0), saturated)
             d = _solve(self.sys, self._actuate(d_free.replace(qacc_warmstart=d.qacc + dqacc), tau))
         frc = d.qfrc_constraint
         d_act = d.qfrc_actuator
@@ -369,9 +372,9 @@ class WallStrike(ArmReach):
             self.window_substeps,
             self.stop_fraction,
             cap_unmet=cap_unmet,
-            # the motors could not realise the substep's acceleration (clipped at ctrlrange, or the correction
-            # missed): a cap decided but not realised (only where the shield has a cap)
-            saturated=(jnp.any(jnp.abs(tau) > tau_max) | miss) & capped,
+            # the motors could not realise the substep's acceleration: a cap decided but not realised (only where
+            # the shield has a cap)
+            saturated=saturated & capped,
         )
         new.update(
             momentum=imp["momentum"] + jnp.where(in_window, (frc + d_act - h) * self.h, 0.0),
