@@ -334,6 +334,7 @@ class WallStrike(ArmReach):
         # the motors cannot apply the torque realising a (clipped at ctrlrange): a saturation unless a contact
         # correction took over (then its miss says it, as MjxActuation reports it)
         saturated = jnp.any(jnp.abs(tau) > tau_max)
+        demanded = tau  # the torque the step's metrics compare with the motors' range (``_limit_metrics``)
         if band is not None:
             # the contact correction (envs/actuation.py): where the wall pushes the realised acceleration out of
             # the shield's band, the motors get the torque that brings it back under the contact's response
@@ -350,6 +351,9 @@ class WallStrike(ArmReach):
             corrected = ~in_strike & jnp.any(out != 0)
             tau = jnp.where(in_strike, tau, applied + dtau)
             saturated = jnp.where(corrected, jnp.any(fix_miss != 0), saturated)
+            # corrected: the boxed torque plus what it still lacked (the miss at the joints' inertia, as
+            # actuation._boxed_inversion estimates it); elsewhere the command itself, whose clip the band may contain
+            demanded = jnp.where(corrected, tau - M @ fix_miss, demanded)
             d = _solve(self.sys, self._actuate(d_free.replace(qacc_warmstart=d.qacc + dqacc), tau))
         frc = d.qfrc_constraint
         d_act = d.qfrc_actuator
@@ -382,7 +386,7 @@ class WallStrike(ArmReach):
             ball_prev=ball,
             w_last=w_now,
         )
-        return (d, new), (d.qpos, d.qvel, d.qacc, tau, in_contact.astype(jnp.float32), frc * self.h)
+        return (d, new), (d.qpos, d.qvel, d.qacc, demanded, in_contact.astype(jnp.float32), frc * self.h)
 
     def _actuate(self, d, tau):
         """The motors' ctrl ``tau`` [N m] (gear 1), then actuation and smooth acceleration (before the solve)."""
@@ -510,6 +514,7 @@ def strike_experiment(env: WallStrike, shields, batch: int, steps: int = 40, spe
     ``tau`` and ``v_post`` (measured over their bounds, see ``WallStrike``), ``cap`` (the shield's cap in
     the last step before the impact; ``inf`` without ``impact=``), ``infeasible`` (steps flagged),
     ``violation_position``/``violation_velocity``/``violation_torque`` (max over the episode),
+    ``violation_torque_free`` (max over the steps before its first contact), ``touched`` (1.0 once in contact),
     ``q_pre``, ``v_pre``, ``impulse`` (joint impulse over the window [N m s]).
     """
     names = [w.name for w in shields]
@@ -559,6 +564,7 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
             ns, cap, infe = jax.vmap(one)(states, sid, speeds)
             m, imp = ns.metrics, ns.info["impact"]
             was_hit = acc["hit"] > 0
+            touched = acc["touched"] > 0
             # the first strike of each env, taken when its window closes (the record re-arms after it)
             take = (m["strike"] > 0) & ~was_hit
             first = _strike_figures(m, imp)
@@ -569,12 +575,19 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
                 "violation_position": jnp.maximum(acc["violation_position"], m["violation/position"]),
                 "violation_velocity": jnp.maximum(acc["violation_velocity"], m["violation/velocity"]),
                 "violation_torque": jnp.maximum(acc["violation_torque"], m["violation/torque"]),
+                # before the episode's first contact: the torque limit's claim (a contact the motors cannot hold
+                # asks them for more, counted in violation_torque)
+                "violation_torque_free": jnp.maximum(
+                    acc["violation_torque_free"], jnp.where(touched | (m["contact"] > 0), 0.0, m["violation/torque"])
+                ),
+                "touched": jnp.maximum(acc["touched"], m["contact"]),
             }
             return (ns, acc), None
 
         z = jnp.zeros((B,), jnp.float32)
         zn = jnp.zeros((B, env.n), jnp.float32)
         acc0 = {"cap": z, "infeasible": z, "violation_position": z, "violation_velocity": z, "violation_torque": z}
+        acc0.update(violation_torque_free=z, touched=z)
         acc0.update({k: z for k in ("hit", "w", "tau", "tau_contact", "v_post", "window")})
         acc0.update({k: zn for k in ("q_pre", "v_pre", "impulse", "momentum")})
         (final, acc), _ = jax.lax.scan(body, (states, acc0), None, length=steps)
