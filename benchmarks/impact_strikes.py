@@ -72,7 +72,11 @@ def summary(env, d):
         "v_post_violations": int((d["v_post"][hit] > 1.0).sum()),
         "position_violations": int((d["violation_position"] > 0).sum()),
         "velocity_violations": int((d["violation_velocity"] > 0).sum()),
+        # strikes whose episode asked the motors for more torque than they have: anywhere, and before the first
+        # contact (the torque limit's claim; pressing the wall can ask more, counted)
         "torque_violations": int((d["violation_torque"] > 0).sum()),
+        "torque_violations_free": int((d["violation_torque_free"] > 0).sum()),
+        "torque_excess_max": float(d["violation_torque"].max()),
         "infeasible_steps": int(d["infeasible"].sum()),
         "cap_mean": float(np.mean(d["cap"][np.isfinite(d["cap"])])) if np.isfinite(d["cap"]).any() else float("inf"),
         "meas_over_rigid_c0_median": float(np.median(r0)) if r0.size else 0.0,
