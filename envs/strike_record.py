@@ -146,7 +146,10 @@ def finish(start: dict, end: dict, contact_in_step, dt_impact: float, tau_imp_ma
     ratio = xp.where(closed, impulsive_ratio(end["impulse"], dt_impact, tau_imp_max, xp), 0.0).astype(f32)
     undelivered = xp.maximum(xp.asarray(cap_unmet, f32), end["sat_step"])
     record = dict(
-        end, off=(1.0 - xp.asarray(contact_in_step, f32)), unmet_prev=undelivered, sat_step=end["sat_step"] * 0
+        end,
+        off=(1.0 - xp.asarray(contact_in_step, f32)),
+        unmet_prev=undelivered,
+        sat_step=xp.zeros_like(end["sat_step"]),
     )
     strike = {
         "strike": xp.asarray(closed, f32),

@@ -564,7 +564,6 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
             ns, cap, infe = jax.vmap(one)(states, sid, speeds)
             m, imp = ns.metrics, ns.info["impact"]
             was_hit = acc["hit"] > 0
-            touched = acc["touched"] > 0
             # the first strike of each env, taken when its window closes (the record re-arms after it)
             take = (m["strike"] > 0) & ~was_hit
             first = _strike_figures(m, imp)
@@ -575,19 +574,19 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
                 "violation_position": jnp.maximum(acc["violation_position"], m["violation/position"]),
                 "violation_velocity": jnp.maximum(acc["violation_velocity"], m["violation/velocity"]),
                 "violation_torque": jnp.maximum(acc["violation_torque"], m["violation/torque"]),
-                # before the episode's first contact: the torque limit's claim (a contact the motors cannot hold
-                # asks them for more, counted in violation_torque)
+                # before the episode's first contact (the record's ``struck``, this step's contact included): the
+                # torque limit's claim (a contact the motors cannot hold asks them for more, counted in
+                # violation_torque)
                 "violation_torque_free": jnp.maximum(
-                    acc["violation_torque_free"], jnp.where(touched | (m["contact"] > 0), 0.0, m["violation/torque"])
+                    acc["violation_torque_free"], jnp.where(imp["struck"] > 0, 0.0, m["violation/torque"])
                 ),
-                "touched": jnp.maximum(acc["touched"], m["contact"]),
             }
             return (ns, acc), None
 
         z = jnp.zeros((B,), jnp.float32)
         zn = jnp.zeros((B, env.n), jnp.float32)
         acc0 = {"cap": z, "infeasible": z, "violation_position": z, "violation_velocity": z, "violation_torque": z}
-        acc0.update(violation_torque_free=z, touched=z)
+        acc0["violation_torque_free"] = z
         acc0.update({k: z for k in ("hit", "w", "tau", "tau_contact", "v_post", "window")})
         acc0.update({k: zn for k in ("q_pre", "v_pre", "impulse", "momentum")})
         (final, acc), _ = jax.lax.scan(body, (states, acc0), None, length=steps)
@@ -597,7 +596,7 @@ def _make_run(env, shields, batch, steps, speed_range, S, B, sid_np):
         last = _strike_figures(m, imp)
         for k, v in last.items():
             acc[k] = jnp.where(open_hit.reshape(open_hit.shape + (1,) * (v.ndim - 1)), v, acc[k])
-        return dict(acc, speed=speeds, gap=final.info["gap"])
+        return dict(acc, speed=speeds, gap=final.info["gap"], touched=imp["struck"])
 
     return run
 
